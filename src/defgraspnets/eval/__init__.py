@@ -1,0 +1,1 @@
+"""Evaluation: Kendall tau, errors in SI units, Chamfer distances, generalization splits, reports and plots."""

@@ -1,0 +1,1 @@
+"""Parallel-jaw gripper, antipodal grasp sampling, grasp experiments (squeeze ramp, pickup, reorientation, accelerations), performance metrics and grasp features."""

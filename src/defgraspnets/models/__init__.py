@@ -1,0 +1,1 @@
+"""Learned models: the DefGraspNets multigraph and MeshGraphNet, the tactile wrench CNN, and their LightningModules."""

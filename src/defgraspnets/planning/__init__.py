@@ -1,0 +1,1 @@
+"""Grasp planning with DefGraspNets: differentiable objectives, batched scoring, gradient refinement."""

@@ -1,0 +1,33 @@
+"""Shared pytest fixtures: quiet Warp, offline W&B, device selection."""
+
+import os
+
+import pytest
+
+os.environ.setdefault("WANDB_MODE", "offline")
+os.environ.setdefault("HYDRA_FULL_ERROR", "1")
+
+
+def _cuda_available() -> bool:
+    try:
+        import warp as wp
+
+        wp.config.quiet = True
+        wp.init()
+        return wp.get_cuda_device_count() > 0
+    except Exception:
+        return False
+
+
+def pytest_collection_modifyitems(config, items):
+    if _cuda_available():
+        return
+    skip_gpu = pytest.mark.skip(reason="no CUDA device")
+    for item in items:
+        if "gpu" in item.keywords:
+            item.add_marker(skip_gpu)
+
+
+@pytest.fixture(scope="session")
+def cuda_available() -> bool:
+    return _cuda_available()
