@@ -84,16 +84,20 @@ class TetMesh:
             raise MeshError(f"{name}: needs at least 4 points and 1 tet, got {len(p)} points, {len(t)} tets")
         bad = ~np.all(np.isfinite(p), axis=1)
         if bad.any():
-            raise MeshError(f"{name}: non-finite (NaN or inf) coordinates at vertices {_summarize(np.nonzero(bad)[0])}")
+            raise MeshError(
+                f"{name}: non-finite (NaN or inf) coordinates at vertices {_summarize(np.nonzero(bad)[0])}"
+            )
         out = np.any((t < 0) | (t >= len(p)), axis=1)
         if out.any():
             raise MeshError(
-                f"{name}: tets {_summarize(np.nonzero(out)[0])} reference vertex indices outside [0, {len(p)})"
+                f"{name}: tets {_summarize(np.nonzero(out)[0])} reference vertices outside [0, {len(p)})"
             )
         s = np.sort(t, axis=1)
         rep = np.any(s[:, 1:] == s[:, :-1], axis=1)
         if rep.any():
-            raise MeshError(f"{name}: tets {_summarize(np.nonzero(rep)[0])} repeat a vertex (collapsed elements)")
+            raise MeshError(
+                f"{name}: tets {_summarize(np.nonzero(rep)[0])} repeat a vertex (collapsed elements)"
+            )
         used = np.zeros(len(p), dtype=bool)
         used[t.ravel()] = True
         if not used.all():
@@ -140,7 +144,8 @@ class TetMesh:
     def box(cls, size=(1.0, 1.0, 1.0), divisions=(2, 2, 2), origin=(0.0, 0.0, 0.0), name="box") -> TetMesh:
         """Structured box ``[origin, origin + size]`` split into ``divisions`` hexes of 6 tets each.
 
-        The 6-tet (Kuhn) split is used so that neighbouring hexes share conforming faces.
+        Each hex is split into 6 tets around a main diagonal (Kuhn), reflected cell by cell so the mesh is
+        conforming and mirror-symmetric about the grid planes (about the box centre for even divisions).
         """
         nx, ny, nz = (int(d) for d in divisions)
         if min(nx, ny, nz) < 1:
@@ -160,8 +165,18 @@ class TetMesh:
             return (i * (ny + 1) + j) * (nz + 1) + k
 
         i, j, k = (a.ravel() for a in np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij"))
-        # hex corners c[b] with b = 4*dx + 2*dy + dz
-        c = np.stack([vid(i + dx, j + dy, k + dz) for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)], axis=1)
+        # hex corners c[b] with b = 4*dx + 2*dy + dz, each cell reflected by the parity of its index so that
+        # shared faces get the same diagonal (conforming) and the mesh is mirror-symmetric about grid planes
+        pi, pj, pk = i % 2, j % 2, k % 2
+        c = np.stack(
+            [
+                vid(i + (dx ^ pi), j + (dy ^ pj), k + (dz ^ pk))
+                for dx in (0, 1)
+                for dy in (0, 1)
+                for dz in (0, 1)
+            ],
+            axis=1,
+        )
         # Kuhn split along the main diagonal c0 -> c7: one tet per permutation of the axes
         paths = [(4, 6), (4, 5), (2, 6), (2, 3), (1, 5), (1, 3)]
         tets = np.concatenate([np.stack([c[:, 0], c[:, a], c[:, b], c[:, 7]], axis=1) for a, b in paths])
@@ -269,6 +284,13 @@ class TetMesh:
         np.add.at(total, e.ravel(), np.repeat(length, 2))
         np.add.at(count, e.ravel(), 1.0)
         return total / count
+
+    @cached_property
+    def median_surface_edge_length(self) -> float:
+        """Median length of the boundary triangles' edges [m]."""
+        p, f = self.points, self.surface_faces
+        e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+        return float(np.median(np.linalg.norm(p[e[:, 0]] - p[e[:, 1]], axis=1)))
 
     @cached_property
     def bounding_box(self) -> tuple[np.ndarray, np.ndarray]:

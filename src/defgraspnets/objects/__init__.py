@@ -1,1 +1,33 @@
-"""Object geometry: procedural primitives, real-world meshes shipped by pip packages, tetrahedralization with a disk cache."""
+"""Object geometry: procedural primitives, real-world meshes shipped by pip packages,
+tetrahedralization with a disk cache."""
+
+from .primitives import CATEGORIES, PRIMITIVES, PrimitiveSpec, build_primitive
+from .real import REAL_OBJECTS, MissingAssetPackageError, RealMeshSpec, load_mesh_file, load_real_object
+from .registry import OBJECT_SETS, SOURCES, ObjectModel, get_object, list_objects, object_set, tet_mesh
+from .surface import ObjectMeshError, check_surface, repair_surface
+from .tetmesh import MESHERS, default_cache_dir, tetrahedralize
+
+__all__ = [
+    "CATEGORIES",
+    "MESHERS",
+    "OBJECT_SETS",
+    "PRIMITIVES",
+    "REAL_OBJECTS",
+    "SOURCES",
+    "MissingAssetPackageError",
+    "ObjectMeshError",
+    "ObjectModel",
+    "PrimitiveSpec",
+    "RealMeshSpec",
+    "build_primitive",
+    "check_surface",
+    "default_cache_dir",
+    "get_object",
+    "list_objects",
+    "load_mesh_file",
+    "load_real_object",
+    "object_set",
+    "repair_surface",
+    "tet_mesh",
+    "tetrahedralize",
+]

@@ -1,0 +1,653 @@
+"""HDF5 grasp shards, schema ``defgraspnets.grasps/1``: the contract between the grasp-data generator
+(DefGraspSim squeeze ramps on the FEM engine) and the learning code.
+
+One file per object shard, named ``<object>__shard<i>of<n>.h5``. All quantities are SI (m, N, Pa, kg/m^3).
+``K`` moduli, ``G`` grasps, ``S`` ramp steps, ``N`` object vertices, ``M`` tets, ``F`` surface faces,
+``V`` / ``T`` finger-pad vertices / triangles::
+
+    /                          attrs: schema, generator_version, object_name, object_category,
+                                      object_source ("primitive" | "real"), config (YAML), created (ISO)
+    /object/points             (N, 3)        float64  rest vertex positions X [m], object frame
+    /object/tets               (M, 4)        int64
+    /object/surface_faces      (F, 3)        int64    outward oriented
+    /material/youngs_modulus   (K,)          float64  E [Pa]
+    /material/poisson_ratio    (K,)          float64
+    /material/density          (K,)          float64  [kg/m^3]
+    /gripper/finger_vertices   (V, 3)        float64  finger-pad surface, finger frame [m] (both fingers)
+    /gripper/finger_faces      (T, 3)        int64    attr closing_axis_in_finger_frame (3,)
+    /grasps/pose               (G, 4, 4)     float64  open-gripper pose in the object frame
+    /grasps/finger_contact_pose (G, 2, 4, 4) float64  finger pose at first contact: v -> R v + t
+    /grasps/closing_direction  (G, 2, 3)     float64  unit closing direction of each finger
+    /ramp/force                (K, G, S)     float64  total normal grasp force F_g (both fingers) [N]
+    /ramp/von_mises            (K, G, S, N)  float32  per-vertex von Mises stress [Pa]
+    /ramp/displacement         (K, G, S, N, 3) float32 per-vertex displacement x - X [m]
+    /ramp/finger_travel        (K, G, S, 2)  float64  travel of each finger along its closing direction
+                                                      from the first-contact pose [m]
+    /ramp/status               (K, G)        int8     0 = solved at every step; > 0 = failure code
+
+Entries with ``status != 0`` are never training data; their fields may be NaN.
+
+Writing (:class:`GraspShardWriter`) is incremental, resumable and atomic: the static groups are written to
+``<name>.partial.h5`` when the shard is created, each ``(k, g)`` squeeze result is written and flushed as
+it arrives and then marked in ``/progress/done`` (K, G); :meth:`GraspShardWriter.finalize` checks that every
+entry is done, drops ``/progress``, fsyncs and renames the file to ``<name>.h5``. A killed generator never
+leaves a final file behind, and re-opening the partial file resumes at the first undone entry. Reading
+(:class:`GraspShard`) validates the schema version, every dataset's presence, shape and dtype, and raises
+:class:`ShardSchemaError` naming the file and the offending dataset.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+__all__ = [
+    "SCHEMA_VERSION",
+    "STATUS_SOLVED",
+    "GraspShard",
+    "GraspShardWriter",
+    "GripperFingers",
+    "ObjectRecord",
+    "ShardSchemaError",
+    "parse_shard_name",
+    "shard_file_name",
+]
+
+SCHEMA_VERSION = "defgraspnets.grasps/1"
+STATUS_SOLVED = 0
+_COMPRESSION = "lzf"
+_SHARD_NAME = re.compile(r"^(?P<object>.+)__shard(?P<index>\d+)of(?P<count>\d+)\.h5$")
+_OBJECT_SOURCES = ("primitive", "real")
+
+
+class ShardSchemaError(ValueError):
+    """A grasp shard does not follow schema ``defgraspnets.grasps/1`` (names the file and the dataset)."""
+
+
+def shard_file_name(object_name: str, shard_index: int, shard_count: int) -> str:
+    """``<object>__shard<i>of<n>.h5`` (``0 <= i < n``)."""
+    if not 0 <= shard_index < shard_count:
+        raise ValueError(f"shard index {shard_index} outside [0, {shard_count})")
+    if "/" in object_name or not object_name:
+        raise ValueError(f"object name {object_name!r} cannot be used in a file name")
+    return f"{object_name}__shard{shard_index}of{shard_count}.h5"
+
+
+def parse_shard_name(path: str | Path) -> tuple[str, int, int]:
+    """``(object_name, shard_index, shard_count)`` from a shard file name."""
+    m = _SHARD_NAME.match(Path(path).name)
+    if m is None:
+        raise ShardSchemaError(f"{path}: file name is not of the form <object>__shard<i>of<n>.h5")
+    return m["object"], int(m["index"]), int(m["count"])
+
+
+# ---------------------------------------------------------------------------------------------- records
+@dataclass
+class ObjectRecord:
+    """The deformable object of a shard: rest mesh and the K materials it is squeezed with.
+
+    Attributes:
+        name, category, source: identity (``source`` is ``"primitive"`` or ``"real"``).
+        points: (N, 3) rest positions [m]. tets: (M, 4). surface_faces: (F, 3) outward.
+        youngs_modulus, poisson_ratio, density: (K,) each [Pa], [-], [kg/m^3].
+    """
+
+    name: str
+    category: str
+    source: str
+    points: np.ndarray
+    tets: np.ndarray
+    surface_faces: np.ndarray
+    youngs_modulus: np.ndarray
+    poisson_ratio: np.ndarray
+    density: np.ndarray
+
+    def __post_init__(self):
+        self.points = np.asarray(self.points, dtype=np.float64)
+        self.tets = np.asarray(self.tets, dtype=np.int64)
+        self.surface_faces = np.asarray(self.surface_faces, dtype=np.int64)
+        self.youngs_modulus = np.atleast_1d(np.asarray(self.youngs_modulus, dtype=np.float64))
+        self.poisson_ratio = np.atleast_1d(np.asarray(self.poisson_ratio, dtype=np.float64))
+        self.density = np.atleast_1d(np.asarray(self.density, dtype=np.float64))
+        if self.source not in _OBJECT_SOURCES:
+            raise ValueError(
+                f"object {self.name!r}: source must be one of {_OBJECT_SOURCES}, got {self.source!r}"
+            )
+        k = len(self.youngs_modulus)
+        if len(self.poisson_ratio) != k or len(self.density) != k:
+            raise ValueError(
+                f"object {self.name!r}: youngs_modulus, poisson_ratio and density must have length K; got "
+                f"{k}, {len(self.poisson_ratio)}, {len(self.density)}"
+            )
+        if np.any(~np.isfinite(self.youngs_modulus)) or np.any(self.youngs_modulus <= 0):
+            raise ValueError(f"object {self.name!r}: Young's moduli must be finite and positive")
+
+    @property
+    def num_moduli(self) -> int:
+        return len(self.youngs_modulus)
+
+
+@dataclass
+class GripperFingers:
+    """The finger-pad surface mesh shared by both fingers, in the finger frame.
+
+    Attributes:
+        vertices: (V, 3) [m]. faces: (T, 3). closing_axis: (3,) unit closing axis in the finger frame.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    closing_axis: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
+
+    def __post_init__(self):
+        self.vertices = np.asarray(self.vertices, dtype=np.float64)
+        self.faces = np.asarray(self.faces, dtype=np.int64)
+        self.closing_axis = np.asarray(self.closing_axis, dtype=np.float64).reshape(3)
+
+    def vertices_at(self, pose: np.ndarray) -> np.ndarray:
+        """(..., V, 3) vertices in the object frame for finger poses ``pose`` (..., 4, 4): ``R v + t``."""
+        pose = np.asarray(pose)
+        return np.einsum("...ij,vj->...vi", pose[..., :3, :3], self.vertices) + pose[..., None, :3, 3]
+
+
+# ---------------------------------------------------------------------------------------------- layout
+# name -> (shape template, dtype); shape letters are resolved from the file, ints are fixed sizes
+_LAYOUT: dict[str, tuple[tuple, type]] = {
+    "object/points": (("N", 3), np.float64),
+    "object/tets": (("M", 4), np.int64),
+    "object/surface_faces": (("F", 3), np.int64),
+    "material/youngs_modulus": (("K",), np.float64),
+    "material/poisson_ratio": (("K",), np.float64),
+    "material/density": (("K",), np.float64),
+    "gripper/finger_vertices": (("V", 3), np.float64),
+    "gripper/finger_faces": (("T", 3), np.int64),
+    "grasps/pose": (("G", 4, 4), np.float64),
+    "grasps/finger_contact_pose": (("G", 2, 4, 4), np.float64),
+    "grasps/closing_direction": (("G", 2, 3), np.float64),
+    "ramp/force": (("K", "G", "S"), np.float64),
+    "ramp/von_mises": (("K", "G", "S", "N"), np.float32),
+    "ramp/displacement": (("K", "G", "S", "N", 3), np.float32),
+    "ramp/finger_travel": (("K", "G", "S", 2), np.float64),
+    "ramp/status": (("K", "G"), np.int8),
+}
+_ROOT_ATTRS = (
+    "schema",
+    "generator_version",
+    "object_name",
+    "object_category",
+    "object_source",
+    "config",
+    "created",
+)
+_RAMP_FIELDS = ("force", "von_mises", "displacement", "finger_travel")
+
+
+def _check_layout(f: h5py.File, path: Path, require_progress: bool = False) -> dict[str, int]:
+    """Validate datasets and attributes of an open shard; return the sizes {N, M, F, K, V, T, G, S}."""
+    schema = f.attrs.get("schema")
+    if isinstance(schema, bytes):
+        schema = schema.decode()
+    if schema is None:
+        raise ShardSchemaError(f"{path}: root attribute 'schema' missing (not a defgraspnets grasp shard)")
+    if schema != SCHEMA_VERSION:
+        raise ShardSchemaError(
+            f"{path}: schema {schema!r} is not supported (this code reads {SCHEMA_VERSION!r})"
+        )
+    missing = [a for a in _ROOT_ATTRS if a not in f.attrs]
+    if missing:
+        raise ShardSchemaError(f"{path}: missing root attributes {missing}")
+    source = f.attrs["object_source"]
+    if source not in _OBJECT_SOURCES:
+        raise ShardSchemaError(f"{path}: attribute object_source={source!r} not in {_OBJECT_SOURCES}")
+    sizes: dict[str, int] = {}
+    for name, (template, dtype) in _LAYOUT.items():
+        if name not in f:
+            raise ShardSchemaError(f"{path}: dataset /{name} missing")
+        ds = f[name]
+        if not isinstance(ds, h5py.Dataset):
+            raise ShardSchemaError(f"{path}: /{name} is not a dataset")
+        if ds.dtype != np.dtype(dtype):
+            raise ShardSchemaError(f"{path}: /{name} has dtype {ds.dtype}, schema requires {np.dtype(dtype)}")
+        if len(ds.shape) != len(template):
+            raise ShardSchemaError(f"{path}: /{name} has shape {ds.shape}, schema requires {template}")
+        for dim, (want, got) in enumerate(zip(template, ds.shape)):
+            if isinstance(want, int):
+                if got != want:
+                    raise ShardSchemaError(
+                        f"{path}: /{name} has shape {ds.shape}, schema requires {template}"
+                    )
+            elif want in sizes and sizes[want] != got:
+                raise ShardSchemaError(
+                    f"{path}: /{name} dimension {dim} is {got} but {want}={sizes[want]} elsewhere in the file"
+                    " "
+                    f"(shape {ds.shape}, schema {template})"
+                )
+            else:
+                sizes[want] = got
+    if "closing_axis_in_finger_frame" not in f["gripper/finger_faces"].attrs and (
+        "closing_axis_in_finger_frame" not in f["gripper"].attrs
+    ):
+        raise ShardSchemaError(f"{path}: attribute /gripper closing_axis_in_finger_frame missing")
+    if require_progress and "progress/done" not in f:
+        raise ShardSchemaError(f"{path}: partial shard has no /progress/done dataset")
+    return sizes
+
+
+# ---------------------------------------------------------------------------------------------- reader
+class GraspShard:
+    """Read-only access to a finished grasp shard, validated against schema ``defgraspnets.grasps/1``.
+
+    Static groups (mesh, material, gripper, grasps, force, status) are loaded into memory on open; the large
+    ramp fields are read lazily: :meth:`fields` returns one ``(k, g, s)`` entry.
+
+    Args:
+        path: the ``.h5`` shard.
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ShardSchemaError: wrong schema version, missing or mis-shaped datasets, non-finite static data,
+            a still-``.partial`` file.
+    """
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        if not self.path.exists():
+            raise FileNotFoundError(f"grasp shard not found: {self.path}")
+        if self.path.name.endswith(".partial.h5"):
+            raise ShardSchemaError(
+                f"{self.path}: is an unfinished (partial) shard; finish or resume its generation"
+            )
+        try:
+            f = h5py.File(self.path, "r")
+        except OSError as e:
+            raise ShardSchemaError(f"{self.path}: not a readable HDF5 file ({e})") from e
+        with f:
+            self.sizes = _check_layout(f, self.path)
+            if "progress" in f:
+                raise ShardSchemaError(
+                    f"{self.path}: still has a /progress group (not finalized by the writer)"
+                )
+            self.attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+            g = f["gripper"]
+            axis = g["finger_faces"].attrs.get(
+                "closing_axis_in_finger_frame", g.attrs.get("closing_axis_in_finger_frame")
+            )
+            self.object = ObjectRecord(
+                name=str(self.attrs["object_name"]),
+                category=str(self.attrs["object_category"]),
+                source=str(self.attrs["object_source"]),
+                points=f["object/points"][()],
+                tets=f["object/tets"][()],
+                surface_faces=f["object/surface_faces"][()],
+                youngs_modulus=f["material/youngs_modulus"][()],
+                poisson_ratio=f["material/poisson_ratio"][()],
+                density=f["material/density"][()],
+            )
+            self.fingers = GripperFingers(g["finger_vertices"][()], g["finger_faces"][()], np.asarray(axis))
+            self.grasp_pose = f["grasps/pose"][()]
+            self.finger_contact_pose = f["grasps/finger_contact_pose"][()]
+            self.closing_direction = f["grasps/closing_direction"][()]
+            self.force = f["ramp/force"][()]
+            self.finger_travel = f["ramp/finger_travel"][()]
+            self.status = f["ramp/status"][()]
+        self._check_static()
+        self._file: h5py.File | None = None
+        self._pid: int | None = None
+
+    def _check_static(self) -> None:
+        p, o = self.path, self.object
+        for name, arr in (
+            ("object/points", o.points),
+            ("gripper/finger_vertices", self.fingers.vertices),
+            ("grasps/finger_contact_pose", self.finger_contact_pose),
+            ("grasps/closing_direction", self.closing_direction),
+        ):
+            if not np.all(np.isfinite(arr)):
+                raise ShardSchemaError(f"{p}: /{name} contains NaN or inf")
+        n = len(o.points)
+        if o.tets.size and (o.tets.min() < 0 or o.tets.max() >= n):
+            raise ShardSchemaError(f"{p}: /object/tets reference vertices outside [0, {n})")
+        if o.surface_faces.size and (o.surface_faces.min() < 0 or o.surface_faces.max() >= n):
+            raise ShardSchemaError(f"{p}: /object/surface_faces reference vertices outside [0, {n})")
+        v = len(self.fingers.vertices)
+        if self.fingers.faces.size and (self.fingers.faces.min() < 0 or self.fingers.faces.max() >= v):
+            raise ShardSchemaError(f"{p}: /gripper/finger_faces reference vertices outside [0, {v})")
+        if np.any(self.status < 0):
+            raise ShardSchemaError(f"{p}: /ramp/status has negative codes")
+        norms = np.linalg.norm(self.closing_direction, axis=-1)
+        if np.any(np.abs(norms - 1.0) > 1e-6):
+            raise ShardSchemaError(f"{p}: /grasps/closing_direction is not made of unit vectors")
+        solved = self.status == STATUS_SOLVED
+        for name, arr in (("ramp/force", self.force), ("ramp/finger_travel", self.finger_travel)):
+            if not np.all(np.isfinite(arr[solved])):
+                k, g = np.argwhere(solved & ~np.all(np.isfinite(arr.reshape(*arr.shape[:2], -1)), axis=-1))[0]
+                raise ShardSchemaError(f"{p}: /{name}[k={k}, g={g}] contains NaN or inf although status == 0")
+
+    # -------------------------------------------------------------- sizes
+    @property
+    def num_moduli(self) -> int:
+        return self.sizes["K"]
+
+    @property
+    def num_grasps(self) -> int:
+        return self.sizes["G"]
+
+    @property
+    def num_steps(self) -> int:
+        return self.sizes["S"]
+
+    @property
+    def num_vertices(self) -> int:
+        return self.sizes["N"]
+
+    def solved(self) -> np.ndarray:
+        """(P, 2) int64 ``(k, g)`` pairs whose squeeze ramp solved at every step (status 0)."""
+        return np.argwhere(self.status == STATUS_SOLVED).astype(np.int64)
+
+    # -------------------------------------------------------------- lazy fields
+    def _handle(self) -> h5py.File:
+        # one handle per process: h5py handles must not cross a fork (DataLoader workers)
+        if self._file is None or self._pid != os.getpid():
+            self._file = h5py.File(self.path, "r")
+            self._pid = os.getpid()
+        return self._file
+
+    def fields(self, k: int, g: int, s: int) -> tuple[np.ndarray, np.ndarray]:
+        """Von Mises stress (N,) [Pa] and displacement (N, 3) [m] of entry ``(k, g, s)`` (float32)."""
+        f = self._handle()
+        return f["ramp/von_mises"][k, g, s], f["ramp/displacement"][k, g, s]
+
+    def close(self) -> None:
+        if self._file is not None and self._pid == os.getpid():
+            self._file.close()
+        self._file = None
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state["_file"] = None
+        state["_pid"] = None
+        return state
+
+    def __repr__(self) -> str:
+        s = self.sizes
+        return (
+            f"GraspShard({self.path.name!r}, object={self.object.name!r}, "
+            f"K={s['K']}, G={s['G']}, S={s['S']}, "
+            f"N={s['N']}, solved={int((self.status == 0).sum())}/{s['K'] * s['G']})"
+        )
+
+
+# ---------------------------------------------------------------------------------------------- writer
+class GraspShardWriter:
+    """Incremental, resumable, atomic writer of one grasp shard.
+
+    Usage (the generator)::
+
+        writer = GraspShardWriter.create(out_dir / shard_file_name(obj.name, i, n), obj, fingers,
+                                         pose, finger_contact_pose, closing_direction, num_steps=S,
+                                         generator_version=__version__, config=yaml_text)
+        for k, g in writer.pending():                       # all (k, g), or what a killed run left undone
+            ...run the squeeze ramp...
+            writer.write(k, g, force, von_mises, displacement, finger_travel, status)
+        writer.finalize()                                    # -> <name>.h5, atomically
+
+    ``create`` resumes instead of starting over when ``<name>.partial.h5`` exists and holds the same static
+    data (same mesh, materials, gripper and grasps; otherwise it raises unless ``overwrite=True``). Each
+    :meth:`write` flushes the fields before it marks ``(k, g)`` done, so an entry interrupted mid-write is
+    redone on resume. ``<name>.h5`` only ever appears through the final ``os.replace``.
+    """
+
+    def __init__(self, partial_path: Path, final_path: Path, f: h5py.File):
+        self.partial_path = partial_path
+        self.path = final_path
+        self._f = f
+        self.sizes = _check_layout(f, partial_path, require_progress=True)
+
+    # -------------------------------------------------------------- construction
+    @staticmethod
+    def partial_path_for(path: str | Path) -> Path:
+        path = Path(path)
+        if not path.name.endswith(".h5") or path.name.endswith(".partial.h5"):
+            raise ValueError(f"shard path must end in .h5 (not .partial.h5): {path}")
+        return path.with_name(path.name[: -len(".h5")] + ".partial.h5")
+
+    @classmethod
+    def create(
+        cls,
+        path: str | Path,
+        obj: ObjectRecord,
+        fingers: GripperFingers,
+        pose: np.ndarray,
+        finger_contact_pose: np.ndarray,
+        closing_direction: np.ndarray,
+        num_steps: int,
+        generator_version: str,
+        config: str = "",
+        overwrite: bool = False,
+    ) -> GraspShardWriter:
+        """Start (or resume) the shard ``path`` (a ``.h5`` name; data go to ``<name>.partial.h5`` first).
+
+        Args:
+            path: final shard path ``<dir>/<object>__shard<i>of<n>.h5``.
+            obj: object mesh and the K materials. fingers: finger-pad mesh in the finger frame.
+            pose: (G, 4, 4) open-gripper poses. finger_contact_pose: (G, 2, 4, 4).
+            closing_direction: (G, 2, 3).
+            num_steps: S, ramp steps stored per grasp.
+            generator_version, config: provenance, stored as root attributes.
+            overwrite: discard an existing final or partial file with different content.
+
+        Raises:
+            FileExistsError: the final shard already exists (and not ``overwrite``).
+            ValueError: inconsistent input shapes, or a partial file of different static content.
+        """
+        path = Path(path)
+        partial = cls.partial_path_for(path)
+        parse_shard_name(path)
+        pose = np.asarray(pose, dtype=np.float64)
+        finger_contact_pose = np.asarray(finger_contact_pose, dtype=np.float64)
+        closing_direction = np.asarray(closing_direction, dtype=np.float64)
+        g = len(pose)
+        if (
+            pose.shape != (g, 4, 4)
+            or finger_contact_pose.shape != (g, 2, 4, 4)
+            or closing_direction.shape != (g, 2, 3)
+        ):
+            raise ValueError(
+                f"grasp arrays must be (G,4,4), (G,2,4,4), (G,2,3); got {pose.shape}, "
+                f"{finger_contact_pose.shape}, "
+                f"{closing_direction.shape}"
+            )
+        if num_steps < 1:
+            raise ValueError(f"num_steps must be >= 1, got {num_steps}")
+        static = {
+            "object/points": obj.points,
+            "object/tets": obj.tets,
+            "object/surface_faces": obj.surface_faces,
+            "material/youngs_modulus": obj.youngs_modulus,
+            "material/poisson_ratio": obj.poisson_ratio,
+            "material/density": obj.density,
+            "gripper/finger_vertices": fingers.vertices,
+            "gripper/finger_faces": fingers.faces,
+            "grasps/pose": pose,
+            "grasps/finger_contact_pose": finger_contact_pose,
+            "grasps/closing_direction": closing_direction,
+        }
+        if path.exists():
+            if not overwrite:
+                raise FileExistsError(
+                    f"{path}: shard already finished (pass overwrite=True to regenerate it)"
+                )
+            path.unlink()
+        if partial.exists():
+            if cls._same_static(partial, static, obj, num_steps):
+                return cls(partial, path, h5py.File(partial, "a"))
+            if not overwrite:
+                raise ValueError(
+                    f"{partial}: an unfinished shard with different object/material/grasp data exists; "
+                    "delete it or pass overwrite=True"
+                )
+            partial.unlink()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        k, n, s = obj.num_moduli, len(obj.points), int(num_steps)
+        f = h5py.File(partial, "w")
+        f.attrs["schema"] = SCHEMA_VERSION
+        f.attrs["generator_version"] = str(generator_version)
+        f.attrs["object_name"] = obj.name
+        f.attrs["object_category"] = obj.category
+        f.attrs["object_source"] = obj.source
+        f.attrs["config"] = str(config)
+        f.attrs["created"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+        for name, arr in static.items():
+            f.create_dataset(name, data=np.asarray(arr, dtype=_LAYOUT[name][1]))
+        f["gripper/finger_faces"].attrs["closing_axis_in_finger_frame"] = fingers.closing_axis
+        f["gripper"].attrs["closing_axis_in_finger_frame"] = fingers.closing_axis
+        nan = np.nan
+        f.create_dataset("ramp/force", shape=(k, g, s), dtype=np.float64, fillvalue=nan)
+        f.create_dataset("ramp/finger_travel", shape=(k, g, s, 2), dtype=np.float64, fillvalue=nan)
+        # one chunk per (k, g, s): the Dataset reads exactly one step of one grasp at a time
+        f.create_dataset(
+            "ramp/von_mises",
+            shape=(k, g, s, n),
+            dtype=np.float32,
+            fillvalue=nan,
+            chunks=(1, 1, 1, n),
+            compression=_COMPRESSION,
+            shuffle=True,
+        )
+        f.create_dataset(
+            "ramp/displacement",
+            shape=(k, g, s, n, 3),
+            dtype=np.float32,
+            fillvalue=nan,
+            chunks=(1, 1, 1, n, 3),
+            compression=_COMPRESSION,
+            shuffle=True,
+        )
+        f.create_dataset("ramp/status", shape=(k, g), dtype=np.int8, fillvalue=-1)
+        f.create_dataset("progress/done", shape=(k, g), dtype=bool, fillvalue=False)
+        f.flush()
+        return cls(partial, path, f)
+
+    @staticmethod
+    def _same_static(partial: Path, static: dict, obj: ObjectRecord, num_steps: int) -> bool:
+        try:
+            with h5py.File(partial, "r") as f:
+                _check_layout(f, partial, require_progress=True)
+                if f["ramp/force"].shape[2] != num_steps:
+                    return False
+                if (f.attrs["object_name"], f.attrs["object_category"], f.attrs["object_source"]) != (
+                    obj.name,
+                    obj.category,
+                    obj.source,
+                ):
+                    return False
+                return all(
+                    f[name].shape == np.shape(arr) and np.array_equal(f[name][()], arr)
+                    for name, arr in static.items()
+                )
+        except (OSError, ShardSchemaError, KeyError) as e:
+            raise ShardSchemaError(
+                f"{partial}: unfinished shard cannot be resumed ({e}); delete it to start this shard over"
+            ) from e
+
+    # -------------------------------------------------------------- progress
+    @property
+    def done(self) -> np.ndarray:
+        """(K, G) bool: entries already written."""
+        return self._f["progress/done"][()]
+
+    def pending(self) -> list[tuple[int, int]]:
+        """``(k, g)`` entries not yet written, in row-major order."""
+        return [(int(k), int(g)) for k, g in np.argwhere(~self.done)]
+
+    # -------------------------------------------------------------- writing
+    def write(
+        self,
+        k: int,
+        g: int,
+        force: np.ndarray,
+        von_mises: np.ndarray,
+        displacement: np.ndarray,
+        finger_travel: np.ndarray,
+        status: int = STATUS_SOLVED,
+    ) -> None:
+        """Store the squeeze ramp of grasp ``g`` with modulus ``k`` and mark it done.
+
+        Args:
+            force: (S,) total normal grasp force [N]. von_mises: (S, N) [Pa]. displacement: (S, N, 3) [m].
+            finger_travel: (S, 2) [m]. status: 0 if every step solved, else a positive failure code
+                (then fields may be NaN; they are never used for training).
+
+        Raises:
+            ValueError: wrong shapes, a negative status, or non-finite values with ``status == 0``.
+        """
+        sz = self.sizes
+        if not (0 <= k < sz["K"] and 0 <= g < sz["G"]):
+            raise ValueError(f"(k, g) = ({k}, {g}) outside (K, G) = ({sz['K']}, {sz['G']})")
+        if status < 0 or status > 127:
+            raise ValueError(f"status must be in [0, 127], got {status}")
+        arrays = {
+            "force": (np.asarray(force, dtype=np.float64), (sz["S"],)),
+            "von_mises": (np.asarray(von_mises, dtype=np.float32), (sz["S"], sz["N"])),
+            "displacement": (np.asarray(displacement, dtype=np.float32), (sz["S"], sz["N"], 3)),
+            "finger_travel": (np.asarray(finger_travel, dtype=np.float64), (sz["S"], 2)),
+        }
+        for name, (arr, shape) in arrays.items():
+            if arr.shape != shape:
+                raise ValueError(f"{name} of (k={k}, g={g}) has shape {arr.shape}, expected {shape}")
+            if status == STATUS_SOLVED and not np.all(np.isfinite(arr)):
+                raise ValueError(f"{name} of (k={k}, g={g}) has NaN/inf values but status is 0 (solved)")
+        f = self._f
+        f["progress/done"][k, g] = False
+        f.flush()
+        for name, (arr, _) in arrays.items():
+            f[f"ramp/{name}"][k, g] = arr
+        f["ramp/status"][k, g] = status
+        f.flush()
+        f["progress/done"][k, g] = True
+        f.flush()
+
+    def finalize(self) -> Path:
+        """Check that every entry is written, fsync and rename ``<name>.partial.h5`` -> ``<name>.h5``.
+
+        Raises:
+            RuntimeError: entries are still pending.
+        """
+        pending = self.pending()
+        if pending:
+            raise RuntimeError(
+                f"{self.partial_path}: {len(pending)} (k, g) entries not written yet, e.g. {pending[:4]}"
+            )
+        del self._f["progress"]
+        self._f.flush()
+        self._f.close()
+        with open(self.partial_path, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(self.partial_path, self.path)
+        try:  # persist the rename itself
+            dir_fd = os.open(self.path.parent, os.O_RDONLY)
+            try:
+                os.fsync(dir_fd)
+            finally:
+                os.close(dir_fd)
+        except OSError:
+            pass
+        GraspShard(self.path)  # validate what was written
+        return self.path
+
+    def close(self) -> None:
+        """Close the partial file without finishing it (it can be resumed with :meth:`create`)."""
+        if self._f.id.valid:
+            self._f.close()
+
+    def __enter__(self) -> GraspShardWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,218 @@
+"""Train / validation / test splits for the four generalization levels of thesis §7.6.
+
+Entries are solved squeezes ``(shard, k, g)``; each split keeps all ramp steps of an entry together.
+
+1. ``unseen_grasps``  unseen grasps on seen objects: per object, 80 / 20 over its grasps (all moduli).
+2. ``unseen_E``       unseen moduli on seen objects: per object, 7 / 3 over its distinct Young's moduli
+                      (all grasps). Objects with a single modulus stay in training.
+3. ``unseen_objects`` unseen primitives within a category: per category of ``primitive`` objects, 5 / 1 over
+                      objects (at least one test object per category of two or more). Real objects are not
+                      used at this level.
+4. ``unseen_real``    unseen real-world objects: ``test_objects`` (default: every ``real`` object) are held
+                      out; training uses ``train_objects`` (default: every other object). Table 7.1 trains
+                      on small groups of objects through ``train_objects``.
+
+Validation is carved from the training entries at the grasp level (``val_fraction`` of each object's
+training grasps), so ``val`` always measures level-1 generalization and ``test`` the chosen level.
+Randomness is seeded per object/category name (``seed`` and a CRC of the name), so adding an object does
+not reshuffle the others.
+"""
+
+from __future__ import annotations
+
+import logging
+import zlib
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from defgraspnets.data.grasp_schema import STATUS_SOLVED, GraspShard
+
+__all__ = ["SPLITS", "DEFAULT_TEST_FRACTION", "ShardInfo", "Split", "make_split"]
+
+log = logging.getLogger(__name__)
+
+SPLITS = ("unseen_grasps", "unseen_E", "unseen_objects", "unseen_real")
+LEVEL = {"unseen_grasps": 1, "unseen_E": 2, "unseen_objects": 3, "unseen_real": 4}
+DEFAULT_TEST_FRACTION = {
+    "unseen_grasps": 0.2,
+    "unseen_E": 0.3,
+    "unseen_objects": 1.0 / 6.0,
+    "unseen_real": None,
+}
+
+
+@dataclass(frozen=True)
+class ShardInfo:
+    """What the splitter needs of a shard: identity, moduli (K,) [Pa] and solver status (K, G)."""
+
+    object_name: str
+    category: str
+    source: str
+    youngs_modulus: np.ndarray
+    status: np.ndarray
+
+    @classmethod
+    def of(cls, shard: GraspShard) -> ShardInfo:
+        o = shard.object
+        return cls(o.name, o.category, o.source, o.youngs_modulus, shard.status)
+
+
+@dataclass
+class Split:
+    """Entries (P, 3) ``(shard, k, g)`` of each part, and the object names of train and test."""
+
+    name: str
+    train: np.ndarray
+    val: np.ndarray
+    test: np.ndarray
+    train_objects: list[str] = field(default_factory=list)
+    test_objects: list[str] = field(default_factory=list)
+
+    def summary(self) -> dict:
+        return {
+            "split": self.name,
+            "level": LEVEL[self.name],
+            "entries": {"train": len(self.train), "val": len(self.val), "test": len(self.test)},
+            "train_objects": self.train_objects,
+            "test_objects": self.test_objects,
+        }
+
+
+def _rng(seed: int, name: str) -> np.random.Generator:
+    return np.random.default_rng([int(seed), zlib.crc32(name.encode())])
+
+
+def _count(n: int, fraction: float, what: str) -> int:
+    """How many of n go to the held-out part: round(fraction n), clipped to [1, n - 1]."""
+    if n < 2:
+        raise ValueError(f"cannot hold out {what}: only {n} available")
+    return int(np.clip(round(fraction * n), 1, n - 1))
+
+
+def _solved(infos: Sequence[ShardInfo], shards: Sequence[int]) -> np.ndarray:
+    parts = [
+        np.concatenate([np.full((len(kg), 1), sh), kg], axis=1)
+        for sh in shards
+        for kg in [np.argwhere(infos[sh].status == STATUS_SOLVED)]
+    ]
+    return np.concatenate(parts).astype(np.int64) if parts else np.zeros((0, 3), np.int64)
+
+
+def _grasp_holdout(entries: np.ndarray, infos: Sequence[ShardInfo], fraction: float, seed: int, what: str):
+    """Split entries by grasp ``(shard, g)`` per object; returns (kept, held_out)."""
+    held = np.zeros(len(entries), dtype=bool)
+    if fraction <= 0 or not len(entries):
+        return entries, entries[held]
+    names = np.array([infos[sh].object_name for sh in entries[:, 0]])
+    for name in np.unique(names):
+        on = names == name
+        grasps = np.unique(entries[on][:, [0, 2]], axis=0)
+        if len(grasps) < 2:
+            log.warning("object %s has %d %s grasp(s): none held out", name, len(grasps), what)
+            continue
+        pick = grasps[
+            _rng(seed, f"{what}/{name}").permutation(len(grasps))[: _count(len(grasps), fraction, what)]
+        ]
+        key = entries[:, 0] * 1_000_000 + entries[:, 2]
+        held |= on & np.isin(key, pick[:, 0] * 1_000_000 + pick[:, 1])
+    return entries[~held], entries[held]
+
+
+def make_split(
+    infos: Sequence[ShardInfo],
+    split: str = "unseen_grasps",
+    seed: int = 0,
+    test_fraction: float | None = None,
+    val_fraction: float = 0.1,
+    test_objects: Sequence[str] | None = None,
+    train_objects: Sequence[str] | None = None,
+) -> Split:
+    """Split the solved entries of ``infos`` (one per shard) for generalization level ``split``.
+
+    Args:
+        infos: one :class:`ShardInfo` per shard (indices are shard numbers).
+        split: one of :data:`SPLITS`.
+        seed: split seed. test_fraction: held-out fraction (default per level: 0.2, 0.3, 1/6).
+        val_fraction: fraction of each object's training grasps used for validation.
+        test_objects, train_objects: object names for ``unseen_real`` (defaults in the module docstring).
+
+    Raises:
+        ValueError: unknown split, unknown object names, or a split that would leave a part empty.
+    """
+    if split not in SPLITS:
+        raise ValueError(f"unknown split {split!r}; choose one of {SPLITS}")
+    if not 0 <= val_fraction < 1:
+        raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction}")
+    frac = DEFAULT_TEST_FRACTION[split] if test_fraction is None else float(test_fraction)
+    if frac is not None and not 0 < frac < 1:
+        raise ValueError(f"test_fraction must be in (0, 1), got {frac}")
+    names = sorted({i.object_name for i in infos})
+    shards_of = {n: [s for s, i in enumerate(infos) if i.object_name == n] for n in names}
+    all_entries = _solved(infos, range(len(infos)))
+    if not len(all_entries):
+        raise ValueError("no solved (status 0) squeeze in the data: nothing to train on")
+
+    if split == "unseen_grasps":
+        train, test = _grasp_holdout(all_entries, infos, frac, seed, "test")
+        test_names = train_names = names
+    elif split == "unseen_E":
+        held = np.zeros(len(all_entries), dtype=bool)
+        for name in names:
+            on = np.isin(all_entries[:, 0], shards_of[name])
+            log_e = np.round(np.log10([infos[sh].youngs_modulus[k] for sh, k, _ in all_entries[on]]), 6)
+            unique = np.unique(log_e)
+            if len(unique) < 2:
+                log.warning("object %s has a single Young's modulus: kept for training only", name)
+                continue
+            test_e = _rng(seed, f"E/{name}").permutation(unique)[: _count(len(unique), frac, "moduli")]
+            held[np.flatnonzero(on)[np.isin(log_e, test_e)]] = True
+        train, test = all_entries[~held], all_entries[held]
+        test_names = train_names = names
+    elif split == "unseen_objects":
+        prim = [n for n in names if infos[shards_of[n][0]].source == "primitive"]
+        skipped = sorted(set(names) - set(prim))
+        if skipped:
+            log.info("unseen_objects: real objects %s are not used at this level", skipped)
+        test_names = []
+        for cat in sorted({infos[shards_of[n][0]].category for n in prim}):
+            members = [n for n in prim if infos[shards_of[n][0]].category == cat]
+            if len(members) < 2:
+                log.warning("category %s has a single primitive (%s): kept for training only", cat, members)
+                continue
+            order = _rng(seed, f"objects/{cat}").permutation(len(members))
+            test_names += [members[i] for i in order[: _count(len(members), frac, f"objects of {cat}")]]
+        train_names = [n for n in prim if n not in test_names]
+        test_names = sorted(test_names)
+    else:  # unseen_real
+        unknown = sorted((set(test_objects or []) | set(train_objects or [])) - set(names))
+        if unknown:
+            raise ValueError(f"unseen_real: objects {unknown} are not in the data (available: {names})")
+        test_names = (
+            sorted(test_objects)
+            if test_objects
+            else [n for n in names if infos[shards_of[n][0]].source == "real"]
+        )
+        train_names = sorted(train_objects) if train_objects else [n for n in names if n not in test_names]
+        overlap = sorted(set(test_names) & set(train_names))
+        if overlap:
+            raise ValueError(f"unseen_real: objects {overlap} are both train and test objects")
+
+    if split in ("unseen_objects", "unseen_real"):
+        if not test_names:
+            raise ValueError(
+                f"{split}: no test object (need real objects, or categories with >= 2 primitives)"
+            )
+        train = _solved(infos, [s for n in train_names for s in shards_of[n]])
+        test = _solved(infos, [s for n in test_names for s in shards_of[n]])
+    train, val = _grasp_holdout(train, infos, val_fraction, seed, "val")
+    for part, arr in (("train", train), ("test", test)):
+        if not len(arr):
+            raise ValueError(f"split {split!r} leaves the {part} part empty")
+    if val_fraction > 0 and not len(val):
+        raise ValueError(
+            f"split {split!r}: no validation grasps (objects need >= 2 training grasps); "
+            "set val_fraction=0 to train without validation"
+        )
+    return Split(split, train, val, test, list(train_names), list(test_names))

@@ -1,0 +1,194 @@
+"""Depth image -> wrench datasets and the LightningDataModule of the wrench CNN (thesis §3.4).
+
+Input normalization (one function, :func:`normalize_depth`, shared with inference in
+:mod:`defgraspnets.models.wrench_module`): the network sees the *depth change* against the sample's
+undeformed reference image (same PV state, no contact), in units of ``depth_scale``:
+
+    x = (z - z_ref) / depth_scale,     x = 0 where z or z_ref is NaN (no return: no information),
+
+so the input is zero without contact and negative where an indenter pushes the membrane towards the
+camera (z < z_ref), and it does not depend on the camera geometry or on the PV state's inflated
+shape. ``depth_scale = 0.01 m`` makes the
+thesis's 0.5-2.5 cm indentations O(1). Targets are the wrenches in SI units (N, N m), unnormalized,
+as in the thesis ("All force-torque values are recorded in SI units"; the MSE it reports is in SI).
+
+Split (thesis: "An 80:20 train/test split"): every shard file is split on its own with a
+permutation seeded by ``(seed, crc32(file name))``, so the split of a shard does not depend on which
+other shards are loaded: the combined dataset's validation set is exactly the union of the poking
+and forearm validation sets, and the three models of §3.4 are compared on the same samples. The
+test set is the validation split (the thesis has no third split).
+"""
+
+from __future__ import annotations
+
+import glob
+import zlib
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import torch
+from torch.utils.data import ConcatDataset, DataLoader, Dataset
+
+from defgraspnets.data.tactile_schema import TactileShard, read_tactile_shard
+
+__all__ = ["TactileWrenchDataModule", "TactileWrenchDataset", "normalize_depth", "split_indices"]
+
+
+def normalize_depth(depth, reference, depth_scale: float):
+    """Network input ``(z - z_ref) / depth_scale`` with NaN -> 0 (numpy or torch, any matching shape)."""
+    if depth_scale <= 0 or not np.isfinite(depth_scale):
+        raise ValueError(f"depth_scale must be a finite length > 0 m, got {depth_scale!r}")
+    if isinstance(depth, torch.Tensor):
+        reference = torch.as_tensor(reference, dtype=depth.dtype, device=depth.device)
+        return torch.nan_to_num((depth - reference) / depth_scale, nan=0.0)
+    x = (np.asarray(depth, dtype=np.float32) - np.asarray(reference, dtype=np.float32)) / np.float32(
+        depth_scale
+    )
+    return np.nan_to_num(x, nan=0.0)
+
+
+def split_indices(n: int, val_fraction: float, seed: int, key: str) -> tuple[np.ndarray, np.ndarray]:
+    """Seeded (train, val) index split of ``n`` samples; ``key`` (e.g. the file name) decorrelates shards."""
+    if not 0.0 <= val_fraction < 1.0:
+        raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction!r}")
+    perm = np.random.default_rng([int(seed), zlib.crc32(key.encode())]).permutation(n)
+    n_val = int(round(val_fraction * n))
+    if n - n_val < 1:
+        raise ValueError(f"{key}: {n} samples leave no training data at val_fraction={val_fraction}")
+    return np.sort(perm[n_val:]), np.sort(perm[:n_val])
+
+
+class TactileWrenchDataset(Dataset):
+    """Samples ``(x (1, H, W) float32, wrench (6,) float32)`` of one shard (held in memory).
+
+    Args:
+        shard: a :class:`TactileShard` or the path of one.
+        indices: the sample rows to use (default: all).
+        depth_scale: normalization length [m], see :func:`normalize_depth`.
+    """
+
+    def __init__(self, shard: TactileShard | str | Path, indices=None, depth_scale: float = 0.01):
+        self.shard = (
+            shard if isinstance(shard, TactileShard) else read_tactile_shard(shard, load_points=False)
+        )
+        n = len(self.shard.samples)
+        self.indices = np.arange(n) if indices is None else np.asarray(indices, dtype=np.int64)
+        if len(self.indices) and (self.indices.min() < 0 or self.indices.max() >= n):
+            raise IndexError(f"indices out of range for a shard of {n} samples")
+        self.depth_scale = float(depth_scale)
+        normalize_depth(np.zeros(1), np.zeros(1), self.depth_scale)  # validates the scale
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __getitem__(self, i: int):
+        row = self.indices[i]
+        s = self.shard.samples
+        x = normalize_depth(
+            s.depth[row], self.shard.references.depth[s.reference_index[row]], self.depth_scale
+        )
+        return torch.from_numpy(x[None]), torch.from_numpy(s.wrench[row].astype(np.float32))
+
+
+class TactileWrenchDataModule(L.LightningDataModule):
+    """The §3.4 datasets: finger poking (batch 500), forearm (batch 400), or both combined (500).
+
+    Args:
+        shards: shard files or glob patterns (e.g. ``["data/tactile/poke/*.h5"]``); a combined
+            dataset lists the patterns of both experiments.
+        batch_size: training batch size (thesis: 500 poking and combined, 400 forearm).
+        val_fraction: validation fraction of every shard (thesis: 0.2).
+        seed: split seed.
+        depth_scale: input normalization length [m].
+        num_workers, pin_memory: DataLoader options.
+    """
+
+    def __init__(
+        self,
+        shards: list[str] | str,
+        batch_size: int = 500,
+        val_fraction: float = 0.2,
+        seed: int = 0,
+        depth_scale: float = 0.01,
+        num_workers: int = 0,
+        pin_memory: bool = False,
+    ):
+        super().__init__()
+        self.save_hyperparameters(logger=False)
+        self.shard_patterns = [shards] if isinstance(shards, str) else list(shards)
+        if not self.shard_patterns:
+            raise ValueError("no tactile shards given")
+        if int(batch_size) != batch_size or batch_size < 1:
+            raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
+        self.batch_size = int(batch_size)
+        self.val_fraction = float(val_fraction)
+        self.seed = int(seed)
+        self.depth_scale = float(depth_scale)
+        self.num_workers = int(num_workers)
+        self.pin_memory = bool(pin_memory)
+        self.shards: list[TactileShard] = []
+        self.data_train: Dataset | None = None
+        self.data_val: Dataset | None = None
+
+    def shard_paths(self) -> list[Path]:
+        """The shard files matched by the patterns, sorted; missing ones raise FileNotFoundError."""
+        paths = []
+        for pattern in self.shard_patterns:
+            pattern = str(pattern)
+            matches = sorted(glob.glob(pattern)) if any(c in pattern for c in "*?[") else [pattern]
+            if not matches or not Path(matches[0]).exists():
+                raise FileNotFoundError(f"no tactile shard matches {pattern!r}")
+            paths += [Path(m) for m in matches]
+        if len(set(paths)) != len(paths):
+            raise ValueError(f"a shard is listed twice: {[str(p) for p in paths]}")
+        return paths
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.data_train is not None:
+            return
+        self.shards = [read_tactile_shard(p, load_points=False) for p in self.shard_paths()]
+        shapes = {s.samples.image_shape for s in self.shards}
+        if len(shapes) != 1:
+            raise ValueError(f"tactile shards have different image sizes: {sorted(shapes)}")
+        train, val = [], []
+        for shard in self.shards:
+            tr, va = split_indices(len(shard.samples), self.val_fraction, self.seed, shard.path.name)
+            train.append(TactileWrenchDataset(shard, tr, self.depth_scale))
+            val.append(TactileWrenchDataset(shard, va, self.depth_scale))
+        self.data_train, self.data_val = ConcatDataset(train), ConcatDataset(val)
+
+    @property
+    def image_shape(self) -> tuple[int, int]:
+        if not self.shards:
+            raise RuntimeError("call setup() first")
+        return self.shards[0].samples.image_shape
+
+    @property
+    def reference_depth(self) -> np.ndarray | None:
+        """The reference image if all shards share exactly one (a single PV state), else None."""
+        refs = [s.references.depth[k] for s in self.shards for k in range(len(s.references))]
+        if refs and all(np.array_equal(r, refs[0], equal_nan=True) for r in refs):
+            return refs[0]
+        return None
+
+    def _loader(self, data, shuffle: bool) -> DataLoader:
+        if data is None:
+            raise RuntimeError("call setup() first")
+        return DataLoader(
+            data,
+            batch_size=self.batch_size,
+            shuffle=shuffle,
+            num_workers=self.num_workers,
+            pin_memory=self.pin_memory,
+            persistent_workers=self.num_workers > 0,
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader(self.data_train, shuffle=True)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader(self.data_val, shuffle=False)
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader(self.data_val, shuffle=False)

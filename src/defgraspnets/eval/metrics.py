@@ -1,0 +1,188 @@
+r"""Prediction metrics of thesis §7.6: Kendall's tau of grasp rankings and mean absolute errors.
+
+Kendall's tau-b of paired rankings ``x, y`` (n,) (ties handled as in ``scipy.stats.kendalltau``):
+
+    tau_b = sum_{i<j} sgn(x_i - x_j) sgn(y_i - y_j)
+            / sqrt( sum_{i<j} sgn(x_i - x_j)^2  sum_{i<j} sgn(y_i - y_j)^2 )
+
+``tau_s`` ranks grasps by mean von Mises stress over the object's vertices, ``tau_d`` by mean deformation
+``|d|`` (thesis §7.4: the distance between rest and deformed vertex positions). Rankings compare grasps of
+the same object, modulus and ramp step (the same commanded force level); tau is averaged over such groups.
+Errors are node-weighted over all object vertices: stress MAE [Pa] (also reported in kPa), deformation MAE
+``| |d_pred| - |d_true| |`` [mm] and displacement-vector MAE ``|d_pred - d_true|`` [mm].
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = ["FieldMetrics", "grouped_kendall_tau", "kendall_tau"]
+
+
+def kendall_tau(x, y) -> float:
+    """Kendall's tau-b of two (n,) sequences; NaN if either is constant or n < 2. O(n^2), vectorized."""
+    x = np.asarray(x, dtype=np.float64).ravel()
+    y = np.asarray(y, dtype=np.float64).ravel()
+    if x.shape != y.shape:
+        raise ValueError(f"kendall_tau needs equal lengths, got {x.shape} and {y.shape}")
+    if len(x) < 2 or not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
+        return float("nan")
+    i, j = np.triu_indices(len(x), k=1)
+    sx, sy = np.sign(x[i] - x[j]), np.sign(y[i] - y[j])
+    denom = np.sqrt(np.sum(sx * sx) * np.sum(sy * sy))
+    return float(np.sum(sx * sy) / denom) if denom > 0 else float("nan")
+
+
+def grouped_kendall_tau(groups, pred, true) -> tuple[float, int]:
+    """Mean tau-b over groups (rows of ``groups`` (n, k) with equal keys) with a defined tau.
+
+    Returns:
+        (mean tau, number of groups it averages); (NaN, 0) if no group has a defined tau.
+    """
+    groups = np.asarray(groups).reshape(len(pred), -1)
+    pred, true = np.asarray(pred), np.asarray(true)
+    _, inverse = np.unique(groups, axis=0, return_inverse=True)
+    taus = [kendall_tau(pred[inverse.ravel() == u], true[inverse.ravel() == u]) for u in np.unique(inverse)]
+    taus = [t for t in taus if np.isfinite(t)]
+    return (float(np.mean(taus)), len(taus)) if taus else (float("nan"), 0)
+
+
+class FieldMetrics:
+    """Accumulates per-sample summaries of predicted vs true fields; :meth:`compute` gives the metrics.
+
+    Per sample (graph) it keeps: ``sample`` (shard, k, g, s), ``object_id``, ``E`` [Pa], ``force`` [N], mean
+    and max stress [Pa] (pred/true), mean deformation [m] (pred/true) and error sums over object nodes.
+    Works on any device; summaries are moved to the CPU.
+    """
+
+    _KEYS = (
+        "sample",
+        "object_id",
+        "youngs_modulus",
+        "force",
+        "nodes",
+        "stress_abs_err",
+        "deform_abs_err",
+        "disp_abs_err",
+        "mean_stress_pred",
+        "mean_stress_true",
+        "max_stress_pred",
+        "max_stress_true",
+        "mean_deform_pred",
+        "mean_deform_true",
+    )
+
+    def __init__(self):
+        self.reset()
+
+    def reset(self) -> None:
+        self._parts: dict[str, list[np.ndarray]] = defaultdict(list)
+
+    def __len__(self) -> int:
+        return int(sum(len(p) for p in self._parts["nodes"]))
+
+    @torch.no_grad()
+    def update(self, stress_pred: Tensor, displacement_pred: Tensor, batch) -> None:
+        """Add a batch: predictions (n,) [Pa], (n, 3) [m] vs ``batch.stress`` / ``batch.displacement``.
+
+        ``batch`` is a :class:`~defgraspnets.models.graph.GraspGraph` (single or batched) with ``sample`` and
+        ``object_id``; only object nodes count.
+        """
+        obj = batch.object_mask
+        gidx = batch.node_graph()[obj]
+        b = batch.graph_count
+
+        def per_graph(v: Tensor, reduce: str = "sum") -> Tensor:
+            v = v.double()
+            if reduce == "sum":
+                return torch.zeros(b, dtype=v.dtype, device=v.device).index_add_(0, gidx, v)
+            return torch.full((b,), -torch.inf, dtype=v.dtype, device=v.device).scatter_reduce(
+                0, gidx, v, "amax"
+            )
+
+        sp, st = stress_pred[obj], batch.stress[obj]
+        dp, dt = displacement_pred[obj], batch.displacement[obj]
+        np_, nt = dp.norm(dim=1), dt.norm(dim=1)
+        nodes = per_graph(torch.ones_like(sp))
+        values = {
+            "sample": batch.sample.reshape(b, -1),
+            "object_id": batch.object_id.reshape(b),
+            "youngs_modulus": batch.youngs_modulus.double(),
+            "force": batch.force.double(),
+            "nodes": nodes,
+            "stress_abs_err": per_graph((sp - st).abs()),
+            "deform_abs_err": per_graph((np_ - nt).abs()),
+            "disp_abs_err": per_graph((dp - dt).norm(dim=1)),
+            "mean_stress_pred": per_graph(sp) / nodes,
+            "mean_stress_true": per_graph(st) / nodes,
+            "max_stress_pred": per_graph(sp, "max"),
+            "max_stress_true": per_graph(st, "max"),
+            "mean_deform_pred": per_graph(np_) / nodes,
+            "mean_deform_true": per_graph(nt) / nodes,
+        }
+        for k, v in values.items():
+            self._parts[k].append(v.detach().cpu().numpy())
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Per-sample summaries, concatenated."""
+        if not len(self):
+            return {k: np.zeros((0, 4) if k == "sample" else (0,)) for k in self._KEYS}
+        return {k: np.concatenate(self._parts[k]) for k in self._KEYS}
+
+    def gather(self) -> None:
+        """Merge the summaries of all DDP ranks (no-op without torch.distributed).
+
+        Samples seen by several ranks (a DistributedSampler pads the last batch with repeats) count once.
+        """
+        import torch.distributed as dist
+
+        if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
+            return
+        everyone: list = [None] * dist.get_world_size()
+        dist.all_gather_object(everyone, self.arrays())
+        merged = {k: np.concatenate([part[k] for part in everyone]) for k in self._KEYS}
+        _, first = np.unique(merged["sample"], axis=0, return_index=True)
+        self.reset()
+        for k in self._KEYS:
+            self._parts[k].append(merged[k][np.sort(first)])
+
+    @staticmethod
+    def summarize(a: dict[str, np.ndarray]) -> dict[str, float]:
+        """Metrics of a dict of per-sample arrays (see :meth:`arrays`)."""
+        n = a["nodes"].sum()
+        if not len(a["nodes"]):
+            return {"samples": 0}
+        groups = np.stack(
+            [a["object_id"], np.round(np.log10(a["youngs_modulus"]), 6), a["sample"][:, 3]], axis=1
+        )
+        tau_s, groups_s = grouped_kendall_tau(groups, a["mean_stress_pred"], a["mean_stress_true"])
+        tau_d, _ = grouped_kendall_tau(groups, a["mean_deform_pred"], a["mean_deform_true"])
+        mae_pa = float(a["stress_abs_err"].sum() / n)
+        return {
+            "samples": int(len(a["nodes"])),
+            "tau_groups": int(groups_s),
+            "tau_s": tau_s,
+            "tau_d": tau_d,
+            "mae_stress_pa": mae_pa,
+            "mae_stress_kpa": mae_pa / 1e3,
+            "mae_deformation_mm": float(a["deform_abs_err"].sum() / n * 1e3),
+            "mae_displacement_mm": float(a["disp_abs_err"].sum() / n * 1e3),
+            "mean_stress_true_kpa": float(np.mean(a["mean_stress_true"]) / 1e3),
+            "mean_deformation_true_mm": float(np.mean(a["mean_deform_true"]) * 1e3),
+        }
+
+    def compute(self) -> dict[str, float]:
+        """Metrics over everything accumulated (tau averaged over (object, E, step) groups)."""
+        return self.summarize(self.arrays())
+
+    def compute_per_object(self) -> dict[int, dict[str, float]]:
+        """Metrics of each object id."""
+        a = self.arrays()
+        return {
+            int(o): self.summarize({k: v[a["object_id"] == o] for k, v in a.items()})
+            for o in np.unique(a["object_id"])
+        }

@@ -1,0 +1,458 @@
+"""Frictional contact between object surface vertices and rigid bodies (Warp kernels).
+
+Normal contact is a penalty on the signed distance g of each object surface vertex i to body k:
+
+    E_n = 1/2 k_i pen^2,   pen = max(0, -g),   k_i = kappa E A_i / h_i,
+
+with A_i the vertex's lumped surface area and h_i its element size, so the penalty is a contact
+*pressure* stiffness kappa E / h: a contact pressure p penetrates p h / (kappa E), i.e. a fraction
+(p / E) / kappa of the local element size.
+
+Friction is Coulomb's law in incremental (quasi-static) elastic-plastic form (penalty friction with
+return mapping, as in Wriggers' Computational Contact Mechanics) with the normal force N_i and contact
+normal n_i lagged from the latest iterate (as in IPC). The tangential stick-spring stretch is
+
+    s = (I - n n^T) (x - y + s_0),
+
+where x - y is the motion, since the last converged load step, of the vertex relative to the body's
+material point it touched (y = the body's motion applied to the vertex's reference position), and s_0
+is the elastic stretch stored at that step (zero for a new contact). At every converged step s_0 is
+updated to s, returned onto the Coulomb cone |s_0| <= mu N / k_t if the contact slipped, so a stuck
+contact keeps carrying its tangential force from one load step to the next.
+
+and the friction potential is an elastic stick spring capped at the Coulomb force mu N:
+
+    D(s) = k_t |s|^2 / 2                          for |s| <= eps = mu N / k_t   (stick)
+    D(s) = mu N |s| - (mu N)^2 / (2 k_t)          otherwise                    (slip),
+
+with k_t = k_i. Its force -dD/ds has magnitude min(k_t |s|, mu N). Gradients of g are taken exactly;
+the Hessian keeps the Gauss-Newton term k n n^T (drops the curvature of the body surface) and the
+PSD friction Hessian, so Newton directions always descend.
+
+A body's placement is (R, t + travel a) with a its control axis in the object frame; the derivative
+of the penetration with respect to travel is n . a.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+f64 = wp.float64
+
+PLANE = wp.constant(0)
+SPHERE = wp.constant(1)
+CAPSULE = wp.constant(2)
+MESH = wp.constant(3)
+
+
+@wp.func
+def closest_point_on_triangle(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d) -> wp.vec3d:
+    """Closest point to p on triangle abc (Ericson, Real-Time Collision Detection, 5.1.5)."""
+    ab = b - a
+    ac = c - a
+    ap = p - a
+    d1 = wp.dot(ab, ap)
+    d2 = wp.dot(ac, ap)
+    if d1 <= f64(0.0) and d2 <= f64(0.0):
+        return a
+    bp = p - b
+    d3 = wp.dot(ab, bp)
+    d4 = wp.dot(ac, bp)
+    if d3 >= f64(0.0) and d4 <= d3:
+        return b
+    vc = d1 * d4 - d3 * d2
+    if vc <= f64(0.0) and d1 >= f64(0.0) and d3 <= f64(0.0):
+        return a + (d1 / (d1 - d3)) * ab
+    cp = p - c
+    d5 = wp.dot(ab, cp)
+    d6 = wp.dot(ac, cp)
+    if d6 >= f64(0.0) and d5 <= d6:
+        return c
+    vb = d5 * d2 - d1 * d6
+    if vb <= f64(0.0) and d2 >= f64(0.0) and d6 <= f64(0.0):
+        return a + (d2 / (d2 - d6)) * ac
+    va = d3 * d6 - d5 * d4
+    if va <= f64(0.0) and (d4 - d3) >= f64(0.0) and (d5 - d6) >= f64(0.0):
+        return b + ((d4 - d3) / ((d4 - d3) + (d5 - d6))) * (c - b)
+    denom = f64(1.0) / (va + vb + vc)
+    return a + ab * (vb * denom) + ac * (vc * denom)
+
+
+@wp.func
+def shape_signed_distance(
+    kind: int,
+    p: wp.vec3d,
+    radius: f64,
+    half_length: f64,
+    mesh: wp.uint64,
+    mesh_points: wp.array(dtype=wp.vec3d),
+    mesh_point_offset: int,
+    query_distance: float,
+):
+    """Signed distance g [m] of shape-frame point p to the shape, and the unit normal (shape frame)
+    pointing from the shape toward p (the direction in which g grows)."""
+    zero = f64(0.0)
+    ez = wp.vec3d(zero, zero, f64(1.0))
+    if kind == PLANE:
+        return p[2], ez
+    if kind == SPHERE or kind == CAPSULE:
+        q = wp.vec3d(zero, zero, zero)
+        if kind == CAPSULE:
+            q = wp.vec3d(zero, zero, wp.clamp(p[2], -half_length, half_length))
+        v = p - q
+        d = wp.length(v)
+        n = ez
+        if d > f64(1e-15):
+            n = v / d
+        return d - radius, n
+    # triangle mesh: nearest face from the BVH (float32), exact distance in float64
+    pf = wp.vec3(float(p[0]), float(p[1]), float(p[2]))
+    query = wp.mesh_query_point_sign_normal(mesh, pf, query_distance)
+    if not query.result:
+        return f64(1.0e30), ez
+    i0 = wp.mesh_get_index(mesh, query.face * 3 + 0)
+    i1 = wp.mesh_get_index(mesh, query.face * 3 + 1)
+    i2 = wp.mesh_get_index(mesh, query.face * 3 + 2)
+    a = mesh_points[mesh_point_offset + i0]
+    b = mesh_points[mesh_point_offset + i1]
+    c = mesh_points[mesh_point_offset + i2]
+    cp = closest_point_on_triangle(p, a, b, c)
+    v = p - cp
+    d = wp.length(v)
+    sign = f64(query.sign)
+    face_normal = wp.normalize(wp.cross(b - a, c - a))
+    n = face_normal
+    if d > f64(1e-12):
+        n = sign * v / d
+        # on a face interior the exact normal is the face normal (avoids noise for tiny distances)
+        if wp.abs(wp.dot(n, face_normal)) > f64(0.999999):
+            n = face_normal
+    return sign * d, n
+
+
+@wp.func
+def body_index(b: int, k: int, num_bodies: int) -> int:
+    return b * num_bodies + k
+
+
+@wp.struct
+class BodyArrays:
+    """Rigid-body data for the kernels; per (problem b, body k) arrays are indexed b * num_bodies + k."""
+
+    kind: wp.array(dtype=wp.int32)  # (K,)
+    radius: wp.array(dtype=wp.float64)  # (K,)
+    half_length: wp.array(dtype=wp.float64)  # (K,)
+    mesh: wp.array(dtype=wp.uint64)  # (K,) Warp mesh id (0 if not a mesh)
+    mesh_point_offset: wp.array(dtype=wp.int32)  # (K,) first vertex in mesh_points
+    mesh_points: wp.array(dtype=wp.vec3d)  # float64 copies of all mesh vertices (shape frames)
+    dof: wp.array(dtype=wp.int32)  # (K,) travel dof index, -1 if fixed
+    rotation: wp.array(dtype=wp.mat33d)  # (B*K,) shape frame -> object frame
+    translation: wp.array(dtype=wp.vec3d)  # (B*K,) shape origin at travel 0
+    axis: wp.array(dtype=wp.vec3d)  # (B*K,) unit control axis in the object frame
+    friction: wp.array(dtype=wp.float64)  # (B*K,) Coulomb coefficient
+    ref_rotation: wp.array(dtype=wp.mat33d)  # (B*K,) placement at the last converged step
+    ref_translation: wp.array(dtype=wp.vec3d)  # (B*K,) (includes that step's travel)
+    num_bodies: int
+    query_distance: float
+
+
+@wp.func
+def body_gap(bodies: BodyArrays, b: int, k: int, x: wp.vec3d, travel: f64):
+    """Signed distance g and object-frame normal of point x to body k of problem b at ``travel``."""
+    bk = b * bodies.num_bodies + k
+    R = bodies.rotation[bk]
+    origin = bodies.translation[bk] + travel * bodies.axis[bk]
+    p = wp.transpose(R) * (x - origin)
+    g, n_local = shape_signed_distance(
+        bodies.kind[k],
+        p,
+        bodies.radius[k],
+        bodies.half_length[k],
+        bodies.mesh[k],
+        bodies.mesh_points,
+        bodies.mesh_point_offset[k],
+        bodies.query_distance,
+    )
+    return g, R * n_local
+
+
+@wp.func
+def body_slip(
+    bodies: BodyArrays, b: int, k: int, x: wp.vec3d, x_ref: wp.vec3d, travel: f64, n: wp.vec3d, s0: wp.vec3d
+):
+    """Stick-spring stretch s = (I - n n^T)(x - y + s_0) of the vertex relative to the body."""
+    bk = b * bodies.num_bodies + k
+    R = bodies.rotation[bk]
+    origin = bodies.translation[bk] + travel * bodies.axis[bk]
+    y = R * (wp.transpose(bodies.ref_rotation[bk]) * (x_ref - bodies.ref_translation[bk])) + origin
+    w = x - y + s0
+    return w - wp.dot(w, n) * n
+
+
+@wp.func
+def contact_stiffness(kappa: f64, youngs: f64, area: f64, size: f64) -> f64:
+    """k_i = kappa E A_i / h_i [N/m]."""
+    return kappa * youngs * area / size
+
+
+@wp.func
+def friction_energy(s: wp.vec3d, mu_n: f64, k_t: f64) -> f64:
+    sn = wp.length(s)
+    eps = mu_n / k_t
+    if sn <= eps:
+        return f64(0.5) * k_t * sn * sn
+    return mu_n * sn - f64(0.5) * mu_n * eps
+
+
+@wp.kernel
+def contact_energy_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    ref_positions: wp.array(dtype=wp.vec3d),
+    travel: wp.array(dtype=wp.float64),
+    surface: wp.array(dtype=wp.int32),
+    vertex_area: wp.array(dtype=wp.float64),
+    vertex_size: wp.array(dtype=wp.float64),
+    youngs: wp.array(dtype=wp.float64),
+    kappa: f64,
+    bodies: BodyArrays,
+    lag_normal_force: wp.array(dtype=wp.float64),
+    lag_normal: wp.array(dtype=wp.vec3d),
+    stick_stretch: wp.array(dtype=wp.vec3d),
+    num_vertices: int,
+    num_dofs: int,
+    active: wp.array(dtype=wp.int32),
+    energy: wp.array(dtype=wp.float64),
+):
+    """energy[b] += penalty + friction potential of every (problem, surface vertex, body)."""
+    b, si, k = wp.tid()
+    if active[b] == 0:
+        return
+    v = surface[si]
+    x = positions[b * num_vertices + v]
+    d = bodies.dof[k]
+    t = f64(0.0)
+    if d >= 0:
+        t = travel[b * num_dofs + d]
+    kn = contact_stiffness(kappa, youngs[b], vertex_area[v], vertex_size[v])
+    g, n = body_gap(bodies, b, k, x, t)
+    e = f64(0.0)
+    if g < f64(0.0):
+        e = f64(0.5) * kn * g * g
+    c = (b * surface.shape[0] + si) * bodies.num_bodies + k
+    mu_n = bodies.friction[b * bodies.num_bodies + k] * lag_normal_force[c]
+    if mu_n > f64(0.0):
+        s = body_slip(
+            bodies, b, k, x, ref_positions[b * num_vertices + v], t, lag_normal[c], stick_stretch[c]
+        )
+        e += friction_energy(s, mu_n, kn)
+    wp.atomic_add(energy, b, e)
+
+
+@wp.struct
+class ContactBlocks:
+    """BSR block indices (within one problem) of the contact couplings."""
+
+    vertex_diag: wp.array(dtype=wp.int32)  # (N,) block (v, v)
+    dof_diag: wp.array(dtype=wp.int32)  # (D,) block (N + d, N + d)
+    dof_vertex: wp.array2d(dtype=wp.int32)  # (D, S) block (N + d, surface[s])
+    vertex_dof: wp.array2d(dtype=wp.int32)  # (D, S) block (surface[s], N + d)
+    blocks_per_problem: int
+    rows_per_problem: int
+
+
+@wp.kernel
+def contact_gradient_hessian_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    ref_positions: wp.array(dtype=wp.vec3d),
+    travel: wp.array(dtype=wp.float64),
+    surface: wp.array(dtype=wp.int32),
+    vertex_area: wp.array(dtype=wp.float64),
+    vertex_size: wp.array(dtype=wp.float64),
+    youngs: wp.array(dtype=wp.float64),
+    kappa: f64,
+    bodies: BodyArrays,
+    lag_normal_force: wp.array(dtype=wp.float64),
+    lag_normal: wp.array(dtype=wp.vec3d),
+    stick_stretch: wp.array(dtype=wp.vec3d),
+    num_vertices: int,
+    num_dofs: int,
+    blocks: ContactBlocks,
+    active: wp.array(dtype=wp.int32),
+    gradient: wp.array(dtype=wp.vec3d),
+    hessian: wp.array(dtype=wp.mat33d),
+):
+    """Add contact and friction gradients (vertex rows and travel-dof rows, component 0) and Hessians."""
+    b, si, k = wp.tid()
+    if active[b] == 0:
+        return
+    v = surface[si]
+    x = positions[b * num_vertices + v]
+    d = bodies.dof[k]
+    t = f64(0.0)
+    if d >= 0:
+        t = travel[b * num_dofs + d]
+    kn = contact_stiffness(kappa, youngs[b], vertex_area[v], vertex_size[v])
+    bk = b * bodies.num_bodies + k
+    a = bodies.axis[bk]
+    g, n = body_gap(bodies, b, k, x, t)
+
+    grad_x = wp.vec3d()
+    grad_t = f64(0.0)
+    H_xx = wp.mat33d()
+    H_xt = wp.vec3d()
+    H_tt = f64(0.0)
+    if g < f64(0.0):
+        pen = -g
+        na = wp.dot(n, a)
+        grad_x = -kn * pen * n
+        grad_t = kn * pen * na
+        H_xx = kn * wp.outer(n, n)
+        H_xt = -kn * na * n
+        H_tt = kn * na * na
+
+    c = (b * surface.shape[0] + si) * bodies.num_bodies + k
+    mu_n = bodies.friction[bk] * lag_normal_force[c]
+    if mu_n > f64(0.0):
+        nl = lag_normal[c]
+        s = body_slip(bodies, b, k, x, ref_positions[b * num_vertices + v], t, nl, stick_stretch[c])
+        sn = wp.length(s)
+        tangent = wp.identity(n=3, dtype=wp.float64) - wp.outer(nl, nl)
+        Hf = wp.mat33d()
+        fs = wp.vec3d()  # dD/ds
+        if sn <= mu_n / kn:
+            fs = kn * s
+            Hf = kn * tangent
+        else:
+            sh = s / sn
+            fs = mu_n * sh
+            Hf = (mu_n / sn) * (tangent - wp.outer(sh, sh))
+        grad_x += fs
+        grad_t -= wp.dot(fs, a)
+        H_xx += Hf
+        Ha = Hf * a
+        H_xt -= Ha
+        H_tt += wp.dot(a, Ha)
+
+    if g >= f64(0.0) and mu_n <= f64(0.0):
+        return
+    wp.atomic_add(gradient, b * blocks.rows_per_problem + v, grad_x)
+    ob = b * blocks.blocks_per_problem
+    wp.atomic_add(hessian, ob + blocks.vertex_diag[v], H_xx)
+    if d >= 0:
+        row = b * blocks.rows_per_problem + num_vertices + d
+        wp.atomic_add(gradient, row, wp.vec3d(grad_t, f64(0.0), f64(0.0)))
+        zero = f64(0.0)
+        wp.atomic_add(
+            hessian,
+            ob + blocks.dof_vertex[d, si],
+            wp.mat33d(H_xt[0], H_xt[1], H_xt[2], zero, zero, zero, zero, zero, zero),
+        )
+        wp.atomic_add(
+            hessian,
+            ob + blocks.vertex_dof[d, si],
+            wp.mat33d(H_xt[0], zero, zero, H_xt[1], zero, zero, H_xt[2], zero, zero),
+        )
+        wp.atomic_add(
+            hessian, ob + blocks.dof_diag[d], wp.mat33d(H_tt, zero, zero, zero, zero, zero, zero, zero, zero)
+        )
+
+
+@wp.kernel
+def contact_state_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    ref_positions: wp.array(dtype=wp.vec3d),
+    travel: wp.array(dtype=wp.float64),
+    surface: wp.array(dtype=wp.int32),
+    vertex_area: wp.array(dtype=wp.float64),
+    vertex_size: wp.array(dtype=wp.float64),
+    youngs: wp.array(dtype=wp.float64),
+    kappa: f64,
+    bodies: BodyArrays,
+    lag_normal_force: wp.array(dtype=wp.float64),
+    lag_normal: wp.array(dtype=wp.vec3d),
+    stick_stretch: wp.array(dtype=wp.vec3d),
+    num_vertices: int,
+    num_dofs: int,
+    normal_force: wp.array(dtype=wp.float64),
+    normal: wp.array(dtype=wp.vec3d),
+    gap: wp.array(dtype=wp.float64),
+    friction_force: wp.array(dtype=wp.vec3d),
+    sticking: wp.array(dtype=wp.int32),
+):
+    """Per contact slot (b, s, k): gap g, penalty normal force k pen >= 0 along the normal, and the friction
+    force on the object vertex (-dD/ds, with the lagged normal force), sticking = |s| <= eps."""
+    b, si, k = wp.tid()
+    v = surface[si]
+    x = positions[b * num_vertices + v]
+    d = bodies.dof[k]
+    t = f64(0.0)
+    if d >= 0:
+        t = travel[b * num_dofs + d]
+    kn = contact_stiffness(kappa, youngs[b], vertex_area[v], vertex_size[v])
+    g, n = body_gap(bodies, b, k, x, t)
+    c = (b * surface.shape[0] + si) * bodies.num_bodies + k
+    gap[c] = g
+    normal[c] = n
+    fn = f64(0.0)
+    if g < f64(0.0):
+        fn = -kn * g
+    normal_force[c] = fn
+    mu_n = bodies.friction[b * bodies.num_bodies + k] * lag_normal_force[c]
+    ff = wp.vec3d()
+    stick = 0
+    if mu_n > f64(0.0):
+        s = body_slip(
+            bodies, b, k, x, ref_positions[b * num_vertices + v], t, lag_normal[c], stick_stretch[c]
+        )
+        sn = wp.length(s)
+        if sn <= mu_n / kn:
+            ff = -kn * s
+            stick = 1
+        else:
+            ff = -(mu_n / sn) * s
+    friction_force[c] = ff
+    sticking[c] = stick
+
+
+@wp.kernel
+def commit_stick_stretch_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    ref_positions: wp.array(dtype=wp.vec3d),
+    travel: wp.array(dtype=wp.float64),
+    surface: wp.array(dtype=wp.int32),
+    vertex_area: wp.array(dtype=wp.float64),
+    vertex_size: wp.array(dtype=wp.float64),
+    youngs: wp.array(dtype=wp.float64),
+    kappa: f64,
+    bodies: BodyArrays,
+    lag_normal_force: wp.array(dtype=wp.float64),
+    lag_normal: wp.array(dtype=wp.vec3d),
+    num_vertices: int,
+    num_dofs: int,
+    mask: wp.array(dtype=wp.int32),
+    stick_stretch: wp.array(dtype=wp.vec3d),
+):
+    """At a converged step: s_0 <- s, returned onto the cone |s_0| <= mu N / k_t (0 out of contact)."""
+    b, si, k = wp.tid()
+    if mask[b] == 0:
+        return
+    c = (b * surface.shape[0] + si) * bodies.num_bodies + k
+    v = surface[si]
+    d = bodies.dof[k]
+    t = f64(0.0)
+    if d >= 0:
+        t = travel[b * num_dofs + d]
+    kn = contact_stiffness(kappa, youngs[b], vertex_area[v], vertex_size[v])
+    mu_n = bodies.friction[b * bodies.num_bodies + k] * lag_normal_force[c]
+    s0 = wp.vec3d()
+    if mu_n > f64(0.0):
+        x = positions[b * num_vertices + v]
+        s = body_slip(
+            bodies, b, k, x, ref_positions[b * num_vertices + v], t, lag_normal[c], stick_stretch[c]
+        )
+        eps = mu_n / kn
+        sn = wp.length(s)
+        s0 = s
+        if sn > eps:
+            s0 = s * (eps / sn)
+    stick_stretch[c] = s0

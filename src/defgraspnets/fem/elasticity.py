@@ -1,0 +1,319 @@
+"""Fixed co-rotated elasticity on linear tetrahedra: energy, forces, Hessian and stress (Warp kernels).
+
+Per tet e with rest volume V_e and inverse rest shape matrix B = D_m^-1, the deformation gradient is
+F = D_s B with D_s = [x1 - x0, x2 - x0, x3 - x0]. With the signed SVD F = U diag(sigma) V^T
+(U, V rotations; sigma_3 < 0 for an inverted element) the energy density is
+
+    Psi = mu * sum_i (sigma_i - 1)^2 + lambda/2 (J - 1)^2,          J = sigma_1 sigma_2 sigma_3,
+
+its first Piola-Kirchhoff stress P = dPsi/dF = U diag(Psi_i) V^T with
+Psi_i = 2 mu (sigma_i - 1) + lambda (J - 1) J / sigma_i, and the Cauchy stress is P F^T / J.
+
+The vertex forces follow from dF_ij/dx_a,m = delta_im beta_a,j, with beta_a the rows of B for
+a = 1..3 and beta_0 = -(beta_1 + beta_2 + beta_3): grad_a = V_e P beta_a.
+
+The Hessian d2Psi/dF2 of an isotropic energy has a closed-form eigensystem (Smith et al. 2019,
+"Analytic eigensystems for isotropic distortion energies"): three scaling modes U diag(z_k) V^T from
+the 3x3 matrix A_ij = d2Psi/dsigma_i dsigma_j, and for each pair (i, j), with k the third index,
+a twist mode U (e_i e_j^T - e_j e_i^T) V^T / sqrt2 with eigenvalue
+(Psi_i + Psi_j)/(sigma_i + sigma_j) = 2 mu (1 - 2/(sigma_i + sigma_j)) + lambda (J - 1) sigma_k and a
+flip mode U (e_i e_j^T + e_j e_i^T) V^T / sqrt2 with eigenvalue
+(Psi_i - Psi_j)/(sigma_i - sigma_j) = 2 mu - lambda (J - 1) sigma_k. Clamping the nine eigenvalues at
+zero gives the nearest positive semi-definite Hessian, so every Newton direction descends.
+Element blocks are K_ac = V_e sum_k lambda_k (Q_k beta_a)(Q_k beta_c)^T.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+f64 = wp.float64
+
+
+@wp.func
+def tet_deformation_gradient(
+    x0: wp.vec3d, x1: wp.vec3d, x2: wp.vec3d, x3: wp.vec3d, rest_inverse: wp.mat33d
+) -> wp.mat33d:
+    """F = [x1-x0, x2-x0, x3-x0] D_m^-1."""
+    ds = wp.matrix_from_cols(x1 - x0, x2 - x0, x3 - x0)
+    return ds * rest_inverse
+
+
+@wp.func
+def shape_gradient(rest_inverse: wp.mat33d, a: int) -> wp.vec3d:
+    """beta_a: d(F_ij)/d(x_a,i) = beta_a,j for local vertex a of the tet."""
+    if a == 0:
+        return -(rest_inverse[0] + rest_inverse[1] + rest_inverse[2])
+    return rest_inverse[a - 1]
+
+
+@wp.func
+def corotated_energy_density(sigma: wp.vec3d, mu: f64, lam: f64) -> f64:
+    """Psi = mu sum (sigma_i - 1)^2 + lambda/2 (J - 1)^2 [J/m^3]."""
+    one = f64(1.0)
+    j = sigma[0] * sigma[1] * sigma[2]
+    d = sigma - wp.vec3d(one, one, one)
+    return mu * wp.dot(d, d) + f64(0.5) * lam * (j - one) * (j - one)
+
+
+@wp.func
+def corotated_principal_stress(sigma: wp.vec3d, mu: f64, lam: f64) -> wp.vec3d:
+    """Psi_i = dPsi/dsigma_i = 2 mu (sigma_i - 1) + lambda (J - 1) prod_{k != i} sigma_k [Pa]."""
+    one = f64(1.0)
+    two = f64(2.0)
+    jm1 = sigma[0] * sigma[1] * sigma[2] - one
+    return wp.vec3d(
+        two * mu * (sigma[0] - one) + lam * jm1 * sigma[1] * sigma[2],
+        two * mu * (sigma[1] - one) + lam * jm1 * sigma[0] * sigma[2],
+        two * mu * (sigma[2] - one) + lam * jm1 * sigma[0] * sigma[1],
+    )
+
+
+@wp.func
+def first_piola_stress(F: wp.mat33d, mu: f64, lam: f64) -> wp.mat33d:
+    """P = U diag(Psi_i) V^T [Pa]."""
+    U = wp.mat33d()
+    s = wp.vec3d()
+    V = wp.mat33d()
+    wp.svd3(F, U, s, V)
+    return U * wp.diag(corotated_principal_stress(s, mu, lam)) * wp.transpose(V)
+
+
+@wp.func
+def cauchy_stress(F: wp.mat33d, mu: f64, lam: f64) -> wp.mat33d:
+    """sigma = P F^T / J, symmetrized against round-off [Pa]."""
+    P = first_piola_stress(F, mu, lam)
+    j = wp.determinant(F)
+    s = P * wp.transpose(F) / j
+    return f64(0.5) * (s + wp.transpose(s))
+
+
+@wp.func
+def von_mises(s: wp.mat33d) -> f64:
+    """Von Mises equivalent stress sqrt(3/2 s_dev : s_dev) of a symmetric stress tensor [Pa]."""
+    d01 = s[0, 0] - s[1, 1]
+    d12 = s[1, 1] - s[2, 2]
+    d20 = s[2, 2] - s[0, 0]
+    shear = s[0, 1] * s[0, 1] + s[1, 2] * s[1, 2] + s[0, 2] * s[0, 2]
+    return wp.sqrt(f64(0.5) * (d01 * d01 + d12 * d12 + d20 * d20) + f64(3.0) * shear)
+
+
+@wp.func
+def pair_mode(U: wp.mat33d, V: wp.mat33d, i: int, j: int, sign: f64) -> wp.mat33d:
+    """U (e_i e_j^T + sign e_j e_i^T) V^T / sqrt(2): flip (sign = +1) or twist (sign = -1) mode."""
+    m = wp.mat33d()
+    c = f64(0.7071067811865476)
+    m[i, j] = c
+    m[j, i] = sign * c
+    return U * m * wp.transpose(V)
+
+
+mat912d = wp.types.matrix(shape=(9, 12), dtype=wp.float64)
+
+
+@wp.func
+def set_mode_row(W: mat912d, k: int, Q: wp.mat33d, eig: f64, B: wp.mat33d, volume: f64) -> mat912d:
+    """Row k of W: sqrt(|eig| V_e) [Q beta_0, Q beta_1, Q beta_2, Q beta_3]."""
+    c = wp.sqrt(wp.abs(eig) * volume)
+    for a in range(4):
+        w = c * (Q * shape_gradient(B, a))
+        W[k, 3 * a + 0] = w[0]
+        W[k, 3 * a + 1] = w[1]
+        W[k, 3 * a + 2] = w[2]
+    return W
+
+
+@wp.kernel
+def elastic_energy_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    tets: wp.array2d(dtype=wp.int32),
+    rest_inverse: wp.array(dtype=wp.mat33d),
+    rest_volume: wp.array(dtype=wp.float64),
+    mu: wp.array(dtype=wp.float64),
+    lam: wp.array(dtype=wp.float64),
+    num_vertices: int,
+    active: wp.array(dtype=wp.int32),
+    energy: wp.array(dtype=wp.float64),
+):
+    """energy[b] += V_e Psi(F_e) for every (problem b, tet e)."""
+    b, e = wp.tid()
+    if active[b] == 0:
+        return
+    o = b * num_vertices
+    F = tet_deformation_gradient(
+        positions[o + tets[e, 0]],
+        positions[o + tets[e, 1]],
+        positions[o + tets[e, 2]],
+        positions[o + tets[e, 3]],
+        rest_inverse[e],
+    )
+    U = wp.mat33d()
+    s = wp.vec3d()
+    V = wp.mat33d()
+    wp.svd3(F, U, s, V)
+    wp.atomic_add(energy, b, rest_volume[e] * corotated_energy_density(s, mu[b], lam[b]))
+
+
+@wp.kernel
+def elastic_gradient_hessian_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    tets: wp.array2d(dtype=wp.int32),
+    rest_inverse: wp.array(dtype=wp.mat33d),
+    rest_volume: wp.array(dtype=wp.float64),
+    mu: wp.array(dtype=wp.float64),
+    lam: wp.array(dtype=wp.float64),
+    tet_blocks: wp.array2d(dtype=wp.int32),
+    num_vertices: int,
+    rows_per_problem: int,
+    blocks_per_problem: int,
+    active: wp.array(dtype=wp.int32),
+    gradient: wp.array(dtype=wp.vec3d),
+    force_scale: wp.array(dtype=wp.float64),
+    hessian: wp.array(dtype=wp.mat33d),
+):
+    """Add each tet's energy gradient to ``gradient`` (rows b * rows_per_problem + v) and its PSD-projected
+    12x12 Hessian to ``hessian``.
+
+    ``tet_blocks[e, 4a + c]`` is the BSR block
+    index (within one problem) of vertex pair (a, c). ``force_scale[b]`` tracks max |elastic force|.
+    """
+    b, e = wp.tid()
+    if active[b] == 0:
+        return
+    o = b * num_vertices
+    B = rest_inverse[e]
+    vol = rest_volume[e]
+    F = tet_deformation_gradient(
+        positions[o + tets[e, 0]],
+        positions[o + tets[e, 1]],
+        positions[o + tets[e, 2]],
+        positions[o + tets[e, 3]],
+        B,
+    )
+    U = wp.mat33d()
+    s = wp.vec3d()
+    V = wp.mat33d()
+    wp.svd3(F, U, s, V)
+    m = mu[b]
+    l = lam[b]
+    one = f64(1.0)
+    two = f64(2.0)
+
+    # forces: grad_a = V_e P beta_a
+    P = U * wp.diag(corotated_principal_stress(s, m, l)) * wp.transpose(V)
+    for a in range(4):
+        g = vol * (P * shape_gradient(B, a))
+        wp.atomic_add(gradient, b * rows_per_problem + tets[e, a], g)
+        wp.atomic_max(force_scale, b, wp.max(wp.abs(g[0]), wp.max(wp.abs(g[1]), wp.abs(g[2]))))
+
+    # scaling modes: A_ii = 2 mu + lambda c_i^2, A_ij = lambda (c_i c_j + (J - 1) sigma_k), c_i = J / sigma_i
+    jm1 = s[0] * s[1] * s[2] - one
+    c = wp.vec3d(s[1] * s[2], s[0] * s[2], s[0] * s[1])
+    A = wp.mat33d(
+        two * m + l * c[0] * c[0],
+        l * (c[0] * c[1] + jm1 * s[2]),
+        l * (c[0] * c[2] + jm1 * s[1]),
+        l * (c[1] * c[0] + jm1 * s[2]),
+        two * m + l * c[1] * c[1],
+        l * (c[1] * c[2] + jm1 * s[0]),
+        l * (c[2] * c[0] + jm1 * s[1]),
+        l * (c[2] * c[1] + jm1 * s[0]),
+        two * m + l * c[2] * c[2],
+    )
+    Z = wp.mat33d()
+    d = wp.vec3d()
+    wp.eig3(A, Z, d)
+    W = mat912d()
+    for k in range(3):
+        z = wp.vec3d(Z[0, k], Z[1, k], Z[2, k])
+        W = set_mode_row(W, k, U * wp.diag(z) * wp.transpose(V), d[k], B, vol)
+
+    # twist and flip modes of the pairs (0,1), (0,2), (1,2) with third index k = 2, 1, 0
+    for p in range(3):
+        i = 0
+        jj = 1
+        k3 = 2
+        if p == 1:
+            jj = 2
+            k3 = 1
+        elif p == 2:
+            i = 1
+            jj = 2
+            k3 = 0
+        denom = s[i] + s[jj]
+        if wp.abs(denom) < f64(1e-6):
+            denom = wp.where(denom < f64(0.0), f64(-1e-6), f64(1e-6))
+        twist = two * m * (one - two / denom) + l * jm1 * s[k3]
+        flip = two * m - l * jm1 * s[k3]
+        W = set_mode_row(W, 3 + 2 * p, pair_mode(U, V, i, jj, f64(-1.0)), twist, B, vol)
+        W = set_mode_row(W, 4 + 2 * p, pair_mode(U, V, i, jj, f64(1.0)), flip, B, vol)
+
+    # K_ac = sum_k W[k, 3a:3a+3] W[k, 3c:3c+3]^T
+    ob = b * blocks_per_problem
+    for a in range(4):
+        for cc in range(4):
+            K = wp.mat33d()
+            for k in range(9):
+                wa = wp.vec3d(W[k, 3 * a], W[k, 3 * a + 1], W[k, 3 * a + 2])
+                wc = wp.vec3d(W[k, 3 * cc], W[k, 3 * cc + 1], W[k, 3 * cc + 2])
+                K += wp.outer(wa, wc)
+            wp.atomic_add(hessian, ob + tet_blocks[e, 4 * a + cc], K)
+
+
+@wp.kernel
+def tet_stress_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    tets: wp.array2d(dtype=wp.int32),
+    rest_inverse: wp.array(dtype=wp.mat33d),
+    rest_volume: wp.array(dtype=wp.float64),
+    mu: wp.array(dtype=wp.float64),
+    lam: wp.array(dtype=wp.float64),
+    num_vertices: int,
+    stress: wp.array(dtype=wp.mat33d),
+    energy: wp.array(dtype=wp.float64),
+    inverted: wp.array(dtype=wp.int32),
+):
+    """Per (problem, tet): Cauchy stress, strain energy V_e Psi (summed per problem), inverted flag."""
+    b, e = wp.tid()
+    o = b * num_vertices
+    F = tet_deformation_gradient(
+        positions[o + tets[e, 0]],
+        positions[o + tets[e, 1]],
+        positions[o + tets[e, 2]],
+        positions[o + tets[e, 3]],
+        rest_inverse[e],
+    )
+    U = wp.mat33d()
+    s = wp.vec3d()
+    V = wp.mat33d()
+    wp.svd3(F, U, s, V)
+    j = s[0] * s[1] * s[2]
+    P = U * wp.diag(corotated_principal_stress(s, mu[b], lam[b])) * wp.transpose(V)
+    sig = P * wp.transpose(F) / j
+    stress[b * tets.shape[0] + e] = f64(0.5) * (sig + wp.transpose(sig))
+    wp.atomic_add(energy, b, rest_volume[e] * corotated_energy_density(s, mu[b], lam[b]))
+    if j <= f64(0.0):
+        wp.atomic_add(inverted, b, 1)
+
+
+@wp.kernel
+def vertex_von_mises_kernel(
+    tet_stress: wp.array(dtype=wp.mat33d),
+    tets: wp.array2d(dtype=wp.int32),
+    rest_volume: wp.array(dtype=wp.float64),
+    vertex_weight: wp.array(dtype=wp.float64),
+    num_vertices: int,
+    vertex_stress: wp.array(dtype=wp.mat33d),
+):
+    """vertex_stress[v] += V_e sigma_e / sum(V_adjacent): the volume-weighted mean of adjacent tets."""
+    b, e = wp.tid()
+    sig = tet_stress[b * tets.shape[0] + e]
+    for a in range(4):
+        v = tets[e, a]
+        wp.atomic_add(vertex_stress, b * num_vertices + v, sig * (rest_volume[e] / vertex_weight[v]))
+
+
+@wp.kernel
+def von_mises_kernel(stress: wp.array(dtype=wp.mat33d), out: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    out[i] = von_mises(stress[i])

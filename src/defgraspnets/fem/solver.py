@@ -1,0 +1,1045 @@
+"""Quasi-static equilibrium of a deformable object touched by rigid bodies, for B problems at once.
+
+Every problem minimizes the incremental potential over the vertex displacements u and the travels of
+its force-controlled bodies,
+
+    Pi(u, t) = sum_e V_e Psi(F_e) + sum_contacts [E_n + D] - sum_i f_i . u_i - sum_d F_d t_d,
+
+(elasticity, penalty contact, lagged Coulomb friction, dead body loads, prescribed actuator forces;
+see elasticity.py, contact.py, loads.py). Its stationary points are the equilibria: elastic forces
+balance contact, friction and body forces, and each force-controlled body presses with its
+prescribed force.
+
+Newton's method: assemble the gradient and the positive semi-definite Hessian, solve H du = -g with
+a Krylov solver (batched block-Jacobi CG, Warp) or a sparse direct solver, then an Armijo
+backtracking line search on Pi per problem, with the step capped so no vertex moves more than a
+fraction of the object size per iteration. A tiny diagonal shift handles floating rigid modes
+without changing the solution. The friction normal forces and normals are re-lagged at every
+iteration from the current state, so a converged state satisfies Coulomb's law with its own normal
+forces.
+
+Load stepping: a ``solve`` call moves every problem from its current loads/targets to new ones. If
+Newton fails for a problem, its increment is halved (per problem) and retried from the last
+converged state; after ``max_load_bisections`` halvings the problem is flagged NOT_CONVERGED. A
+problem whose object moves more than ``escape_fraction`` of its size in one increment has no
+equilibrium near its last state (it slips out, falls, or loses contact) and is flagged ESCAPED.
+Flags are sticky until :meth:`QuasiStaticSolver.reset`; flagged problems are never returned as answers.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from . import contact as ck
+from . import elasticity as ek
+from . import kernels as kk
+from .bodies import SHAPE_KIND, BodyError, RigidBody, TriangleMesh, check_rigid_transform
+from .loads import BodyLoad
+from .material import Material
+from .mesh import TetMesh
+from .results import Equilibrium, SolveStatus
+from .system import BatchedSystem, BlockPattern
+
+__all__ = ["SolverOptions", "QuasiStaticSolver"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SolverOptions:
+    """Numerical settings of :class:`QuasiStaticSolver` (defaults suit E from 1e4 to 1e9 Pa).
+
+    Args:
+        contact_stiffness: kappa, penalty pressure stiffness in units of E / h, h the median surface edge
+            length: a contact pressure p penetrates (p / E) h / kappa, reported as ``max_penetration``.
+        rtol: a problem has converged when every free residual force component is below
+            ``rtol`` times the largest elastic, body-load or actuator force component.
+        max_newton_iterations: per load increment before it is halved.
+        max_load_bisections: a problem is flagged when its failing increment would drop below 2^-n of the
+            requested change (or after 4 n failed increments in one call).
+        linear_solver: "cg" (batched block-Jacobi CG in Warp, on the solver's device), "amg" (CG with a
+            smoothed-aggregation multigrid preconditioner, pyamg, on the host), "direct" (SuperLU on the
+            host) or "auto" (amg on CPU, cg on CUDA).
+        cg_rtol, cg_max_iterations: Krylov tolerance (relative to the right-hand side) and cap.
+        max_step_fraction: largest vertex or travel motion per Newton iteration, as a fraction of the mesh
+            bounding-box diagonal.
+        escape_fraction: object motion within one increment, as a fraction of the diagonal, that flags
+            the problem ESCAPED (no equilibrium).
+        regularization: diagonal shift relative to E h per vertex (removes floating rigid modes).
+        query_distance: search radius [m] of triangle-mesh bodies' signed distance queries.
+        record_tet_stress: keep the per-tet Cauchy stress in results (B x M x 9 floats).
+    """
+
+    contact_stiffness: float = 1000.0
+    rtol: float = 1e-7
+    max_newton_iterations: int = 40
+    max_load_bisections: int = 10
+    linear_solver: str = "auto"
+    cg_rtol: float = 1e-8
+    cg_max_iterations: int = 5000
+    max_step_fraction: float = 0.1
+    escape_fraction: float = 0.5
+    regularization: float = 1e-10
+    query_distance: float = 1.0
+    record_tet_stress: bool = False
+
+    def __post_init__(self):
+        if self.linear_solver not in ("auto", "cg", "amg", "direct"):
+            raise ValueError(
+                f"linear_solver must be 'auto', 'cg', 'amg' or 'direct', got {self.linear_solver!r}"
+            )
+        for name in ("contact_stiffness", "rtol", "cg_rtol", "max_step_fraction", "escape_fraction"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"SolverOptions.{name} must be > 0, got {getattr(self, name)!r}")
+
+
+def rigid_body_modes(points: np.ndarray, batch_size: int, num_dofs: int) -> np.ndarray:
+    """(B (N + D) 3, 6) translations and infinitesimal rotations of every problem's vertices (the near-null
+    space of elasticity, for multigrid); travel rows get the unit translations."""
+    n = len(points)
+    x = points - points.mean(axis=0)
+    modes = np.zeros((n + num_dofs, 3, 6))
+    modes[:, [0, 1, 2], [0, 1, 2]] = 1.0
+    for k in range(3):  # rotation about axis k: e_k x x
+        modes[:n, :, 3 + k] = np.cross(np.eye(3)[k], x)
+    return np.tile(modes.reshape(-1, 6), (batch_size, 1))
+
+
+def _per_problem(value, batch_size: int, name: str) -> np.ndarray:
+    v = np.asarray(value, dtype=np.float64)
+    if v.ndim == 0:
+        v = np.full(batch_size, float(v))
+    if v.shape != (batch_size,):
+        raise ValueError(f"{name} must be a scalar or have shape ({batch_size},), got {v.shape}")
+    if not np.all(np.isfinite(v)):
+        raise ValueError(f"{name} must be finite, got {value!r}")
+    return v
+
+
+class QuasiStaticSolver:
+    """Quasi-static FEM solver for B problems sharing one tet mesh and one set of rigid bodies.
+
+    Args:
+        mesh: the object's rest configuration.
+        bodies: rigid bodies that may touch the object (planes, spheres, capsules, triangle meshes).
+        material: one :class:`Material` or a list of B (the problems may differ in material).
+        batch_size: number of independent problems B (different grasps, loads, materials).
+        fixed: Dirichlet constraints: vertex indices (all components fixed) or an (N, 3) bool mask.
+        device: Warp device ("cpu", "cuda", "cuda:0", ...); default: Warp's default device.
+        options: :class:`SolverOptions`.
+
+    Per-problem settings: :meth:`set_material`, :meth:`set_body_pose`, :meth:`set_friction`; loads and
+    targets are given to :meth:`solve` (they persist, so the next call continues from them).
+    """
+
+    def __init__(
+        self,
+        mesh: TetMesh,
+        bodies=(),
+        material: Material | list[Material] | None = None,
+        batch_size: int = 1,
+        fixed=None,
+        device=None,
+        options: SolverOptions | None = None,
+    ):
+        wp.init()
+        if not isinstance(mesh, TetMesh):
+            raise TypeError(f"mesh must be a TetMesh, got {type(mesh).__name__}")
+        if int(batch_size) < 1:
+            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        self.mesh = mesh
+        self.batch_size = B = int(batch_size)
+        self.device = wp.get_device(device)
+        self.options = options or SolverOptions()
+        linear = self.options.linear_solver
+        if linear == "auto":
+            linear = "cg" if self.device.is_cuda else "amg"
+        self.linear_solver = linear
+
+        self.bodies = list(bodies)
+        names = [b.name for b in self.bodies]
+        if len(set(names)) != len(names):
+            raise BodyError(f"body names must be unique, got {names}")
+        for body in self.bodies:
+            if not isinstance(body, RigidBody):
+                raise TypeError(f"bodies must be RigidBody instances, got {type(body).__name__}")
+        self.dof_names: list[str] = []
+        self.dof_mode: list[str] = []
+        body_dof = []
+        for body in self.bodies:
+            name = body.dof_name
+            if name is None:
+                body_dof.append(-1)
+                continue
+            if name not in self.dof_names:
+                self.dof_names.append(name)
+                self.dof_mode.append(body.control.mode)
+            d = self.dof_names.index(name)
+            if self.dof_mode[d] != body.control.mode:
+                raise BodyError(f"bodies sharing dof {name!r} must use the same control mode")
+            body_dof.append(d)
+        self.num_bodies = K = len(self.bodies)
+        self.num_dofs = D = len(self.dof_names)
+        N = mesh.num_vertices
+        self.rows_per_problem = R = N + D
+        dev = self.device
+
+        # ---------------- mesh data
+        self._rest = wp.array(mesh.points, dtype=wp.vec3d, device=dev)
+        self._tets = wp.array(mesh.tets.astype(np.int32), dtype=wp.int32, device=dev)
+        self._rest_inverse = wp.array(mesh.rest_shape_inverse, dtype=wp.mat33d, device=dev)
+        self._volume = wp.array(mesh.volumes, dtype=wp.float64, device=dev)
+        self._vertex_weight = wp.array(mesh.vertex_tet_volume, dtype=wp.float64, device=dev)
+        self._surface = wp.array(mesh.surface_vertices.astype(np.int32), dtype=wp.int32, device=dev)
+        self._area = wp.array(mesh.vertex_areas, dtype=wp.float64, device=dev)
+        # one penalty length for the whole mesh (median surface edge): under a uniform pressure every vertex
+        # then penetrates equally, so the penalty does not perturb the pressure distribution
+        self.contact_length = mesh.median_surface_edge_length
+        self._size = wp.array(np.full(N, self.contact_length), dtype=wp.float64, device=dev)
+        self.num_surface = S = len(mesh.surface_vertices)
+
+        # ---------------- Dirichlet constraints and free mask of every row
+        fixed_mask = np.zeros((N, 3), dtype=bool)
+        if fixed is not None:
+            f = np.asarray(fixed)
+            if f.dtype == bool:
+                if f.shape != (N, 3):
+                    raise ValueError(f"a boolean fixed mask must have shape ({N}, 3), got {f.shape}")
+                fixed_mask = f.copy()
+            else:
+                idx = f.astype(np.int64).ravel()
+                if idx.size and (idx.min() < 0 or idx.max() >= N):
+                    raise ValueError(f"fixed vertex indices must be in [0, {N})")
+                fixed_mask[idx] = True
+        self.fixed_mask = fixed_mask
+        free = np.zeros((R, 3))
+        free[:N] = ~fixed_mask
+        for d, mode in enumerate(self.dof_mode):
+            free[N + d, 0] = 1.0 if mode == "force" else 0.0
+        self._free = wp.array(free, dtype=wp.vec3d, device=dev)
+
+        # ---------------- sparse system
+        self._near_nullspace = rigid_body_modes(mesh.points, B, D)
+        self.pattern = BlockPattern.build(mesh, D)
+        self.system = BatchedSystem(self.pattern, B, dev)
+        pad = lambda a: a if a.size else np.zeros((1, max(S, 1)), dtype=np.int32)  # noqa: E731
+        self._blocks = ck.ContactBlocks()
+        self._blocks.vertex_diag = wp.array(self.pattern.vertex_diag, dtype=wp.int32, device=dev)
+        self._blocks.dof_diag = wp.array(
+            self.pattern.dof_diag if D else np.zeros(1, np.int32), dtype=wp.int32, device=dev
+        )
+        self._blocks.dof_vertex = wp.array(pad(self.pattern.dof_vertex), dtype=wp.int32, device=dev)
+        self._blocks.vertex_dof = wp.array(pad(self.pattern.vertex_dof), dtype=wp.int32, device=dev)
+        self._blocks.blocks_per_problem = self.pattern.nnz
+        self._blocks.rows_per_problem = R
+        self._tet_blocks = wp.array(self.pattern.tet_blocks, dtype=wp.int32, device=dev)
+
+        # ---------------- rigid bodies
+        self._body_dof = np.array(body_dof, dtype=np.int32)
+        self._shape_frames = (
+            np.stack([b.shape.shape_frame() for b in self.bodies]) if K else np.zeros((0, 4, 4))
+        )
+        self._axes_local = np.array([b.control.axis for b in self.bodies]).reshape(K, 3)
+        self._poses = np.broadcast_to(np.eye(4), (B, K, 4, 4)).copy()
+        self._friction = np.tile([b.friction for b in self.bodies], (B, 1)).reshape(B, K)
+        self._warp_meshes = []
+        mesh_points = [np.zeros((1, 3))]
+        mesh_offset = np.zeros(K, dtype=np.int32)
+        mesh_ids = np.zeros(K, dtype=np.uint64)
+        offset = 1
+        for k, body in enumerate(self.bodies):
+            if isinstance(body.shape, TriangleMesh):
+                wm = wp.Mesh(
+                    points=wp.array(body.shape.vertices.astype(np.float32), dtype=wp.vec3, device=dev),
+                    indices=wp.array(body.shape.faces.astype(np.int32).ravel(), dtype=wp.int32, device=dev),
+                    support_winding_number=True,
+                )
+                self._warp_meshes.append(wm)
+                mesh_ids[k] = wm.id
+                mesh_offset[k] = offset
+                mesh_points.append(body.shape.vertices)
+                offset += len(body.shape.vertices)
+        ba = ck.BodyArrays()
+        ba.kind = wp.array(
+            [SHAPE_KIND[type(b.shape)] for b in self.bodies] or [0], dtype=wp.int32, device=dev
+        )
+        ba.radius = wp.array(
+            [getattr(b.shape, "radius", 0.0) for b in self.bodies] or [0.0], dtype=wp.float64, device=dev
+        )
+        ba.half_length = wp.array(
+            [getattr(b.shape, "half_length", 0.0) for b in self.bodies] or [0.0], dtype=wp.float64, device=dev
+        )
+        ba.mesh = wp.array(mesh_ids if K else np.zeros(1, np.uint64), dtype=wp.uint64, device=dev)
+        ba.mesh_point_offset = wp.array(
+            mesh_offset if K else np.zeros(1, np.int32), dtype=wp.int32, device=dev
+        )
+        ba.mesh_points = wp.array(np.concatenate(mesh_points), dtype=wp.vec3d, device=dev)
+        ba.dof = wp.array(self._body_dof if K else np.zeros(1, np.int32), dtype=wp.int32, device=dev)
+        nbk = max(B * K, 1)
+        ba.rotation = wp.zeros(nbk, dtype=wp.mat33d, device=dev)
+        ba.translation = wp.zeros(nbk, dtype=wp.vec3d, device=dev)
+        ba.axis = wp.zeros(nbk, dtype=wp.vec3d, device=dev)
+        ba.friction = wp.zeros(nbk, dtype=wp.float64, device=dev)
+        ba.ref_rotation = wp.zeros(nbk, dtype=wp.mat33d, device=dev)
+        ba.ref_translation = wp.zeros(nbk, dtype=wp.vec3d, device=dev)
+        ba.num_bodies = K
+        ba.query_distance = float(self.options.query_distance)
+        self._bodies = ba
+
+        # ---------------- per-problem state (q packs u and the travels, B * R rows)
+        self._q = wp.zeros(B * R, dtype=wp.vec3d, device=dev)
+        self._q_ref = wp.zeros_like(self._q)
+        self._q_trial = wp.zeros_like(self._q)
+        self._positions = wp.zeros(B * N, dtype=wp.vec3d, device=dev)
+        self._positions_ref = wp.zeros_like(self._positions)
+        self._positions_trial = wp.zeros_like(self._positions)
+        self._travel = wp.zeros(max(B * D, 1), dtype=wp.float64, device=dev)
+        self._travel_ref = wp.zeros_like(self._travel)
+        self._travel_trial = wp.zeros_like(self._travel)
+        nc = max(B * S * K, 1)
+        self._lag_force = wp.zeros(nc, dtype=wp.float64, device=dev)
+        self._lag_normal = wp.zeros(nc, dtype=wp.vec3d, device=dev)
+        self._stick_stretch = wp.zeros(nc, dtype=wp.vec3d, device=dev)
+        self._c_force = wp.zeros(nc, dtype=wp.float64, device=dev)
+        self._c_normal = wp.zeros(nc, dtype=wp.vec3d, device=dev)
+        self._c_gap = wp.zeros(nc, dtype=wp.float64, device=dev)
+        self._c_friction = wp.zeros(nc, dtype=wp.vec3d, device=dev)
+        self._c_stick = wp.zeros(nc, dtype=wp.int32, device=dev)
+        self._nodal_force = wp.zeros(B * N, dtype=wp.vec3d, device=dev)
+        self._dof_force = wp.zeros(max(B * D, 1), dtype=wp.float64, device=dev)
+        self._energy = wp.zeros(B, dtype=wp.float64, device=dev)
+        self._scratch = [wp.zeros(B, dtype=wp.float64, device=dev) for _ in range(5)]
+        self._step = wp.zeros(B, dtype=wp.float64, device=dev)
+
+        # current loads and targets (host), and sticky status
+        self._masses = mesh.vertex_masses(1.0)  # per unit density, scaled by each problem's density
+        self._load = BodyLoad()
+        self._dof_target = np.zeros((B, D))
+        self._prescribed = np.zeros((B, N, 3))
+        self.status = np.zeros(B, dtype=np.int32)
+        self.set_material(material if material is not None else Material(1e6))
+        self._update_bodies()
+        self.reset()
+
+    # ------------------------------------------------------------------ per-problem settings
+    def set_material(self, material) -> None:
+        """One :class:`Material` for all problems, or a sequence of B."""
+        mats = [material] * self.batch_size if isinstance(material, Material) else list(material)
+        if len(mats) != self.batch_size or not all(isinstance(m, Material) for m in mats):
+            raise ValueError(f"material must be a Material or a list of {self.batch_size} Materials")
+        self.materials = mats
+        dev = self.device
+        self._youngs_np = np.array([m.youngs_modulus for m in mats])
+        self._density_np = np.array([m.density for m in mats])
+        self._youngs = wp.array(self._youngs_np, dtype=wp.float64, device=dev)
+        self._mu = wp.array([m.shear_modulus for m in mats], dtype=wp.float64, device=dev)
+        self._lam = wp.array([m.lame_lambda for m in mats], dtype=wp.float64, device=dev)
+        N, D = self.mesh.num_vertices, self.num_dofs
+        shift = np.zeros((self.batch_size, self.rows_per_problem, 3))
+        scale = self.options.regularization * self._youngs_np[:, None] * self.mesh.vertex_size[None, :]
+        shift[:, :N, :] = scale[:, :, None]
+        if D:
+            shift[:, N:, 0] = self.options.regularization * self._youngs_np[:, None] * self.mesh.diameter
+        self._diag_shift = wp.array(shift.reshape(-1, 3), dtype=wp.vec3d, device=dev)
+
+    def _body(self, name: str) -> int:
+        for k, b in enumerate(self.bodies):
+            if b.name == name:
+                return k
+        raise KeyError(f"no rigid body named {name!r}; bodies are {[b.name for b in self.bodies]}")
+
+    def set_body_pose(self, name: str, pose) -> None:
+        """Pose (4x4, or (B, 4, 4) per problem) of body ``name``'s frame in the object frame at travel 0.
+
+        Changing a pose moves the body instantly (no friction history is carried across the change).
+        """
+        k = self._body(name)
+        T = check_rigid_transform(pose, f"pose of body {name!r}")
+        self._poses[:, k] = np.broadcast_to(T, (self.batch_size, 4, 4))
+        self._update_bodies(reference=True)
+        self._stick_stretch.zero_()
+
+    def set_friction(self, name: str, mu) -> None:
+        """Coulomb coefficient of body ``name`` with the object (scalar or (B,))."""
+        k = self._body(name)
+        mu = _per_problem(mu, self.batch_size, f"friction of body {name!r}")
+        if np.any(mu < 0):
+            raise ValueError("friction coefficients must be >= 0")
+        self._friction[:, k] = mu
+        self._update_bodies()
+
+    def _world_frames(self):
+        """Per (b, k): rotation, origin at travel 0, and control axis, all in the object frame."""
+        W = self._poses @ self._shape_frames[None]
+        axes = np.einsum("bkij,kj->bki", self._poses[..., :3, :3], self._axes_local)
+        return W[..., :3, :3], W[..., :3, 3], axes
+
+    def _update_bodies(self, reference: bool = False):
+        if not self.num_bodies:
+            return
+        rot, origin, axes = self._world_frames()
+        dev = self.device
+        ba = self._bodies
+        ba.rotation.assign(wp.array(rot.reshape(-1, 3, 3), dtype=wp.mat33d, device=dev))
+        ba.translation.assign(wp.array(origin.reshape(-1, 3), dtype=wp.vec3d, device=dev))
+        ba.axis.assign(wp.array(axes.reshape(-1, 3), dtype=wp.vec3d, device=dev))
+        ba.friction.assign(wp.array(self._friction.reshape(-1), dtype=wp.float64, device=dev))
+        if reference:
+            self._commit_body_reference(np.ones(self.batch_size, dtype=bool))
+
+    def _commit_body_reference(self, mask: np.ndarray):
+        """Store each masked problem's current body placements (with travel) as the friction reference."""
+        if not self.num_bodies:
+            return
+        rot, origin, axes = self._world_frames()
+        travel = self._travel.numpy()[: self.batch_size * self.num_dofs].reshape(
+            self.batch_size, self.num_dofs
+        )
+        t_body = np.zeros((self.batch_size, self.num_bodies))
+        for k, d in enumerate(self._body_dof):
+            if d >= 0:
+                t_body[:, k] = travel[:, d]
+        placed = origin + t_body[..., None] * axes
+        ref_rot = self._bodies.ref_rotation.numpy().reshape(self.batch_size, self.num_bodies, 3, 3)
+        ref_pos = self._bodies.ref_translation.numpy().reshape(self.batch_size, self.num_bodies, 3)
+        ref_rot[mask] = rot[mask]
+        ref_pos[mask] = placed[mask]
+        self._bodies.ref_rotation.assign(
+            wp.array(ref_rot.reshape(-1, 3, 3), dtype=wp.mat33d, device=self.device)
+        )
+        self._bodies.ref_translation.assign(
+            wp.array(ref_pos.reshape(-1, 3), dtype=wp.vec3d, device=self.device)
+        )
+
+    def reset(self) -> None:
+        """Back to the rest state: zero displacement and travel, no loads, statuses cleared."""
+        self._q.zero_()
+        self._q_ref.zero_()
+        self._lag_force.zero_()
+        self._stick_stretch.zero_()
+        self._load = BodyLoad()
+        self._dof_target[:] = 0.0
+        self._prescribed[:] = 0.0
+        self.status[:] = SolveStatus.CONVERGED
+        self._unpack(self._q, self._positions, self._travel)
+        self._unpack(self._q_ref, self._positions_ref, self._travel_ref)
+        self._commit_body_reference(np.ones(self.batch_size, dtype=bool))
+
+    # ------------------------------------------------------------------ kernels plumbing
+    def _unpack(self, q, positions, travel):
+        wp.launch(
+            kk.unpack_state_kernel,
+            dim=(self.batch_size, self.rows_per_problem),
+            inputs=[q, self._rest, self.mesh.num_vertices, self.num_dofs, positions, travel],
+            device=self.device,
+        )
+
+    def _active_array(self, mask: np.ndarray):
+        return wp.array(mask.astype(np.int32), dtype=wp.int32, device=self.device)
+
+    def _energy_at(self, q, positions, travel, active) -> np.ndarray:
+        """Pi per problem at state q (whose unpacked positions/travel are given)."""
+        B, N, D = self.batch_size, self.mesh.num_vertices, self.num_dofs
+        e = self._energy
+        e.zero_()
+        wp.launch(
+            ek.elastic_energy_kernel,
+            dim=(B, self.mesh.num_tets),
+            inputs=[
+                positions,
+                self._tets,
+                self._rest_inverse,
+                self._volume,
+                self._mu,
+                self._lam,
+                N,
+                active,
+                e,
+            ],
+            device=self.device,
+        )
+        if self.num_bodies:
+            wp.launch(
+                ck.contact_energy_kernel,
+                dim=(B, self.num_surface, self.num_bodies),
+                inputs=[
+                    positions,
+                    self._positions_ref,
+                    travel,
+                    self._surface,
+                    self._area,
+                    self._size,
+                    self._youngs,
+                    float(self.options.contact_stiffness),
+                    self._bodies,
+                    self._lag_force,
+                    self._lag_normal,
+                    self._stick_stretch,
+                    N,
+                    D,
+                    active,
+                    e,
+                ],
+                device=self.device,
+            )
+        wp.launch(
+            kk.external_work_kernel,
+            dim=(B, self.rows_per_problem),
+            inputs=[q, self._nodal_force, self._dof_force, N, D, active, e],
+            device=self.device,
+        )
+        return e.numpy().copy()
+
+    def _assemble(self, active) -> tuple[np.ndarray, np.ndarray]:
+        """Gradient and Hessian at the current state; returns (elastic force scale, load scale)."""
+        B, N, D = self.batch_size, self.mesh.num_vertices, self.num_dofs
+        sysm = self.system
+        sysm.zero()
+        fscale, lscale = self._scratch[0], self._scratch[1]
+        fscale.zero_()
+        lscale.zero_()
+        wp.launch(
+            ek.elastic_gradient_hessian_kernel,
+            dim=(B, self.mesh.num_tets),
+            inputs=[
+                self._positions,
+                self._tets,
+                self._rest_inverse,
+                self._volume,
+                self._mu,
+                self._lam,
+                self._tet_blocks,
+                N,
+                self.rows_per_problem,
+                self.pattern.nnz,
+                active,
+                sysm.gradient,
+                fscale,
+                sysm.values,
+            ],
+            device=self.device,
+        )
+        if self.num_bodies:
+            wp.launch(
+                ck.contact_gradient_hessian_kernel,
+                dim=(B, self.num_surface, self.num_bodies),
+                inputs=[
+                    self._positions,
+                    self._positions_ref,
+                    self._travel,
+                    self._surface,
+                    self._area,
+                    self._size,
+                    self._youngs,
+                    float(self.options.contact_stiffness),
+                    self._bodies,
+                    self._lag_force,
+                    self._lag_normal,
+                    self._stick_stretch,
+                    N,
+                    D,
+                    self._blocks,
+                    active,
+                    sysm.gradient,
+                    sysm.values,
+                ],
+                device=self.device,
+            )
+        wp.launch(
+            kk.external_gradient_kernel,
+            dim=(B, self.rows_per_problem),
+            inputs=[self._nodal_force, self._dof_force, N, D, active, sysm.gradient, lscale],
+            device=self.device,
+        )
+        sysm.constrain(self._free, self._diag_shift)
+        return fscale.numpy().copy(), lscale.numpy().copy()
+
+    def _contact_state(self, positions, travel):
+        if not self.num_bodies:
+            return
+        wp.launch(
+            ck.contact_state_kernel,
+            dim=(self.batch_size, self.num_surface, self.num_bodies),
+            inputs=[
+                positions,
+                self._positions_ref,
+                travel,
+                self._surface,
+                self._area,
+                self._size,
+                self._youngs,
+                float(self.options.contact_stiffness),
+                self._bodies,
+                self._lag_force,
+                self._lag_normal,
+                self._stick_stretch,
+                self.mesh.num_vertices,
+                self.num_dofs,
+                self._c_force,
+                self._c_normal,
+                self._c_gap,
+                self._c_friction,
+                self._c_stick,
+            ],
+            device=self.device,
+        )
+
+    def _relag_friction(self, mask: np.ndarray):
+        """Lagged normal forces and normals <- current ones, for the problems in ``mask``."""
+        if not self.num_bodies or not np.any(self._friction[mask] > 0):
+            return
+        self._contact_state(self._positions, self._travel)
+        m = np.repeat(mask, self.num_surface * self.num_bodies)
+        lf = self._lag_force.numpy()
+        ln = self._lag_normal.numpy()
+        lf[m] = self._c_force.numpy()[m]
+        ln[m] = self._c_normal.numpy()[m]
+        self._lag_force.assign(lf)
+        self._lag_normal.assign(ln)
+
+    # ------------------------------------------------------------------ loads at a load fraction
+    def _apply_increment(self, lam: np.ndarray, start: dict, end: dict, mask: np.ndarray):
+        """Set loads, actuator targets and prescribed displacements of the masked problems to
+        start + lam (end - start), and move their prescribed components there."""
+        B, N, D = self.batch_size, self.mesh.num_vertices, self.num_dofs
+        w = lam[:, None, None]
+        f = start["nodal_force"] + w * (end["nodal_force"] - start["nodal_force"])
+        nf = self._nodal_force.numpy().reshape(B, N, 3)
+        nf[mask] = f[mask]
+        self._nodal_force.assign(nf.reshape(-1, 3))
+        targets = start["dof"] + lam[:, None] * (end["dof"] - start["dof"])
+        q = self._q.numpy().reshape(B, self.rows_per_problem, 3)
+        if D:
+            force_dofs = np.array([m == "force" for m in self.dof_mode])
+            dof_force = self._dof_force.numpy()[: B * D].reshape(B, D)
+            dof_force[mask] = np.where(force_dofs[None], targets, 0.0)[mask]
+            self._dof_force.assign(np.concatenate([dof_force.ravel(), np.zeros(max(B * D, 1) - B * D)]))
+            disp = ~force_dofs
+            q[np.ix_(mask, N + np.nonzero(disp)[0], [0])] = targets[np.ix_(mask, np.nonzero(disp)[0])][
+                ..., None
+            ]
+        if self.fixed_mask.any():
+            pres = start["prescribed"] + w * (end["prescribed"] - start["prescribed"])
+            qv = q[:, :N]
+            sel = mask[:, None, None] & self.fixed_mask[None]
+            qv[sel] = pres[sel]
+        self._q.assign(q.reshape(-1, 3))
+        self._unpack(self._q, self._positions, self._travel)
+
+    def _loads_now(self) -> dict:
+        masses = self._masses[None, :] * self._density_np[:, None]
+        f = self._load.nodal_forces(self.mesh.points, masses, self.batch_size)
+        return {"nodal_force": f, "dof": self._dof_target.copy(), "prescribed": self._prescribed.copy()}
+
+    # ------------------------------------------------------------------ public solve
+    def solve(
+        self,
+        targets: dict | None = None,
+        body_load: BodyLoad | None = None,
+        prescribed_displacement=None,
+        initial_fraction: float = 1.0,
+    ) -> Equilibrium:
+        """Move every problem from its current loads to the given ones and return the equilibria.
+
+        Args:
+            targets: dof name -> force [N] (force-controlled) or travel [m] (displacement-controlled),
+                scalar or (B,). Unnamed dofs keep their current targets.
+            body_load: new :class:`BodyLoad` (default: keep the current one).
+            prescribed_displacement: (N, 3) or (B, N, 3) displacement of the fixed components [m].
+            initial_fraction: first trial increment as a fraction of the whole change (the solver halves
+                failing increments and grows successful ones on its own).
+        """
+        B, N = self.batch_size, self.mesh.num_vertices
+        start = self._loads_now()
+        if targets:
+            for name, value in targets.items():
+                if name not in self.dof_names:
+                    raise KeyError(f"unknown dof {name!r}; dofs are {self.dof_names}")
+                self._dof_target[:, self.dof_names.index(name)] = _per_problem(value, B, f"target {name!r}")
+        if body_load is not None:
+            if not isinstance(body_load, BodyLoad):
+                raise TypeError("body_load must be a BodyLoad")
+            body_load.arrays(B)  # validates shapes
+            self._load = body_load
+        if prescribed_displacement is not None:
+            p = np.broadcast_to(np.asarray(prescribed_displacement, dtype=np.float64), (B, N, 3))
+            if not np.all(np.isfinite(p)):
+                raise ValueError("prescribed_displacement must be finite")
+            self._prescribed = np.array(p)
+        end = self._loads_now()
+
+        o = self.options
+        todo = self.status == SolveStatus.CONVERGED
+        lam_done = np.zeros(B)
+        lam_try = np.where(todo, float(np.clip(initial_fraction, 1e-6, 1.0)), 0.0)
+        bisections = np.zeros(B, dtype=int)
+        newton_total = np.zeros(B, dtype=int)
+        linear_total = np.zeros(B, dtype=int)
+        residual = np.zeros(B)
+        while todo.any():
+            log.debug("load increment: fractions %s -> %s", lam_done[todo][:4], lam_try[todo][:4])
+            self._apply_increment(lam_try, start, end, todo)
+            ok, fail_status, it, lin, res = self._newton(todo)
+            newton_total += it
+            linear_total += lin
+            residual = np.where(todo, res, residual)
+            good = todo & ok
+            bad = todo & ~ok
+            if good.any():
+                self._commit(good)
+                step = lam_try - lam_done
+                lam_done[good] = lam_try[good]
+                finished = good & (lam_done >= 1.0)
+                todo &= ~finished
+                grow = good & ~finished
+                lam_try[grow] = np.minimum(1.0, lam_done[grow] + 2.0 * step[grow])
+            if bad.any():
+                self._restore(bad)
+                bisections[bad] += 1
+                tiny = (lam_try - lam_done) < 2.0**-o.max_load_bisections
+                giveup = bad & (
+                    (bisections > 4 * o.max_load_bisections) | tiny | (fail_status == SolveStatus.NONFINITE)
+                )
+                for b in np.nonzero(giveup)[0]:
+                    self.status[b] = fail_status[b]
+                    log.info(
+                        "problem %d flagged %s at load fraction %.4g",
+                        b,
+                        SolveStatus(fail_status[b]).name,
+                        lam_done[b],
+                    )
+                todo &= ~giveup
+                retry = bad & ~giveup
+                lam_try[retry] = 0.5 * (lam_done[retry] + lam_try[retry])
+        # problems that failed stay at their last converged state; record how far they got
+        self._unpack(self._q, self._positions, self._travel)
+        return self._results(lam_done, newton_total, linear_total, residual)
+
+    def ramp(
+        self,
+        steps: int,
+        targets: dict | None = None,
+        body_load: BodyLoad | None = None,
+        progress: bool = False,
+    ) -> list[Equilibrium]:
+        """Solve at ``steps`` evenly spaced load levels from the current loads to the given ones."""
+        if steps < 1:
+            raise ValueError("steps must be >= 1")
+        start_targets = {n: self._dof_target[:, d].copy() for d, n in enumerate(self.dof_names)}
+        start_load = self._load
+        end_targets = {n: _per_problem(v, self.batch_size, n) for n, v in (targets or {}).items()}
+        out = []
+        it = range(1, steps + 1)
+        if progress:
+            from tqdm.auto import tqdm
+
+            it = tqdm(it, desc="load steps", leave=False)
+        for s in it:
+            frac = s / steps
+            tg = {n: start_targets[n] + frac * (v - start_targets[n]) for n, v in end_targets.items()}
+            bl = None if body_load is None else start_load.interpolate(body_load, frac, self.batch_size)
+            out.append(self.solve(tg, bl))
+        return out
+
+    # ------------------------------------------------------------------ Newton
+    def _newton(self, mask: np.ndarray):
+        """Newton iterations on the masked problems at their current loads.
+
+        Returns per problem: success, failure status, iterations, Krylov iterations, final residual."""
+        o = self.options
+        B = self.batch_size
+        working = mask.copy()
+        ok = np.zeros(B, dtype=bool)
+        status = np.full(B, SolveStatus.NOT_CONVERGED, dtype=np.int32)
+        iters = np.zeros(B, dtype=int)
+        lin_iters = np.zeros(B, dtype=int)
+        residual = np.full(B, np.inf)
+        dof_targets = np.abs(self._dof_force.numpy()[: B * self.num_dofs].reshape(B, self.num_dofs))
+        atol = 1e-14 * self._youngs_np * self.mesh.diameter**2
+        max_step = o.max_step_fraction * self.mesh.diameter
+        escape = o.escape_fraction * self.mesh.diameter
+        sysm = self.system
+        for _ in range(o.max_newton_iterations + 1):
+            self._relag_friction(working)
+            active = self._active_array(working)
+            fscale, lscale = self._assemble(active)
+            res_arr = self._scratch[2]
+            res_arr.zero_()
+            wp.launch(
+                kk.newton_rhs_kernel,
+                dim=(B, self.rows_per_problem),
+                inputs=[sysm.gradient, self._free, active, self.rows_per_problem, sysm.rhs, res_arr],
+                device=self.device,
+            )
+            res = res_arr.numpy()
+            residual[working] = res[working]
+            scale = np.maximum(np.maximum(fscale, lscale), dof_targets.max(axis=1, initial=0.0))
+            nonfinite = working & ~np.isfinite(res)
+            if nonfinite.any():
+                status[nonfinite] = SolveStatus.NONFINITE
+                working &= ~nonfinite
+            conv = working & (res <= o.rtol * scale + atol)
+            if log.isEnabledFor(logging.DEBUG):
+                b0 = int(np.argmax(working))
+                log.debug(
+                    "newton it %d problem %d residual %.3e tol %.3e",
+                    iters[b0],
+                    b0,
+                    res[b0],
+                    o.rtol * scale[b0] + atol[b0],
+                )
+            ok |= conv
+            working &= ~conv
+            if not working.any():
+                break
+            if iters[working].max() >= o.max_newton_iterations:
+                break
+            iters[working] += 1
+            # rhs of problems that are done is zero: rebuild it for the working set only
+            active = self._active_array(working)
+            wp.launch(
+                kk.newton_rhs_kernel,
+                dim=(B, self.rows_per_problem),
+                inputs=[sysm.gradient, self._free, active, self.rows_per_problem, sysm.rhs, res_arr],
+                device=self.device,
+            )
+            if self.linear_solver == "cg":
+                n_lin, _ = sysm.solve_cg(o.cg_rtol, o.cg_max_iterations)
+            elif self.linear_solver == "amg":
+                n_lin, _ = sysm.solve_amg(self._near_nullspace, o.cg_rtol, o.cg_max_iterations)
+            else:
+                n_lin, _ = sysm.solve_direct()
+            lin_iters[working] += n_lin
+            failed = self._line_search(working, active, max_step)
+            if log.isEnabledFor(logging.DEBUG):
+                log.debug(
+                    "  step %.3e line search %s",
+                    self._step.numpy()[int(np.argmax(working))],
+                    failed[working][:4],
+                )
+            nonfinite_step = failed == 2
+            status[nonfinite_step] = SolveStatus.NONFINITE
+            # a failed line search this close to the tolerance is round-off: accept the state
+            stalled = failed == 1
+            near = stalled & (residual <= 1e3 * (o.rtol * scale + atol))
+            ok |= near
+            working &= ~(stalled | nonfinite_step)
+            # escape: the object moved too far within one increment
+            drift = self._scratch[3]
+            drift.zero_()
+            wp.launch(
+                kk.vertex_drift_kernel,
+                dim=(B, self.mesh.num_vertices),
+                inputs=[self._q, self._q_ref, self.mesh.num_vertices, self.rows_per_problem, drift],
+                device=self.device,
+            )
+            esc = working & (drift.numpy() > escape)
+            status[esc] = SolveStatus.ESCAPED
+            working &= ~esc
+        return ok, status, iters, lin_iters, residual
+
+    def _line_search(self, working: np.ndarray, active, max_step: float) -> np.ndarray:
+        """Armijo backtracking on Pi per problem; updates the state. Returns per problem 0 (ok),
+        1 (no decrease found) or 2 (non-finite)."""
+        B = self.batch_size
+        sysm = self.system
+        slope, vmax, dmax = self._scratch[2], self._scratch[3], self._scratch[4]
+        for a in (slope, vmax, dmax):
+            a.zero_()
+        wp.launch(
+            kk.step_stats_kernel,
+            dim=(B, self.rows_per_problem),
+            inputs=[
+                sysm.rhs,
+                sysm.increment,
+                self.mesh.num_vertices,
+                self.rows_per_problem,
+                slope,
+                vmax,
+                dmax,
+            ],
+            device=self.device,
+        )
+        slope_np = slope.numpy()
+        biggest = np.maximum(vmax.numpy(), dmax.numpy())
+        alpha = np.where(working, np.minimum(1.0, max_step / np.maximum(biggest, 1e-300)), 0.0)
+        e0 = self._energy_at(self._q, self._positions, self._travel, active)
+        result = np.zeros(B, dtype=int)
+        searching = working.copy()
+        bad_dir = searching & ~(slope_np < 0)
+        result[bad_dir] = 1
+        searching &= ~bad_dir
+        alpha[bad_dir] = 0.0
+        accepted = np.zeros(B, dtype=bool)
+        for _ in range(60):
+            if not searching.any():
+                break
+            self._step.assign(np.where(searching | accepted, alpha, 0.0))
+            wp.launch(
+                kk.trial_state_kernel,
+                dim=(B, self.rows_per_problem),
+                inputs=[self._q, sysm.increment, self._step, self.rows_per_problem, self._q_trial],
+                device=self.device,
+            )
+            self._unpack(self._q_trial, self._positions_trial, self._travel_trial)
+            e1 = self._energy_at(self._q_trial, self._positions_trial, self._travel_trial, active)
+            slack = 1e-12 * (np.abs(e0) + np.abs(e1)) + 1e-300
+            good = searching & np.isfinite(e1) & (e1 <= e0 + 1e-4 * alpha * slope_np + slack)
+            accepted |= good
+            searching &= ~good
+            alpha[searching] *= 0.5
+        still = searching
+        result[still] = 1
+        alpha[~accepted] = 0.0
+        self._step.assign(alpha)
+        wp.launch(
+            kk.trial_state_kernel,
+            dim=(B, self.rows_per_problem),
+            inputs=[self._q, sysm.increment, self._step, self.rows_per_problem, self._q_trial],
+            device=self.device,
+        )
+        wp.copy(self._q, self._q_trial)
+        self._unpack(self._q, self._positions, self._travel)
+        return result
+
+    def _commit(self, mask: np.ndarray):
+        m = self._active_array(mask)
+        if self.num_bodies:
+            wp.launch(
+                ck.commit_stick_stretch_kernel,
+                dim=(self.batch_size, self.num_surface, self.num_bodies),
+                inputs=[
+                    self._positions,
+                    self._positions_ref,
+                    self._travel,
+                    self._surface,
+                    self._area,
+                    self._size,
+                    self._youngs,
+                    float(self.options.contact_stiffness),
+                    self._bodies,
+                    self._lag_force,
+                    self._lag_normal,
+                    self.mesh.num_vertices,
+                    self.num_dofs,
+                    m,
+                    self._stick_stretch,
+                ],
+                device=self.device,
+            )
+        wp.launch(
+            kk.copy_problems_kernel,
+            dim=(self.batch_size, self.rows_per_problem),
+            inputs=[self._q, m, self.rows_per_problem, self._q_ref],
+            device=self.device,
+        )
+        self._unpack(self._q_ref, self._positions_ref, self._travel_ref)
+        self._commit_body_reference(mask)
+
+    def _restore(self, mask: np.ndarray):
+        m = self._active_array(mask)
+        wp.launch(
+            kk.copy_problems_kernel,
+            dim=(self.batch_size, self.rows_per_problem),
+            inputs=[self._q_ref, m, self.rows_per_problem, self._q],
+            device=self.device,
+        )
+        self._unpack(self._q, self._positions, self._travel)
+
+    # ------------------------------------------------------------------ outputs
+    def _results(self, load_fraction, newton, linear, residual) -> Equilibrium:
+        B, N, M = self.batch_size, self.mesh.num_vertices, self.mesh.num_tets
+        K, S = self.num_bodies, self.num_surface
+        dev = self.device
+        tet_stress = wp.zeros(B * M, dtype=wp.mat33d, device=dev)
+        energy = wp.zeros(B, dtype=wp.float64, device=dev)
+        inverted = wp.zeros(B, dtype=wp.int32, device=dev)
+        wp.launch(
+            ek.tet_stress_kernel,
+            dim=(B, M),
+            inputs=[
+                self._positions,
+                self._tets,
+                self._rest_inverse,
+                self._volume,
+                self._mu,
+                self._lam,
+                N,
+                tet_stress,
+                energy,
+                inverted,
+            ],
+            device=dev,
+        )
+        vstress = wp.zeros(B * N, dtype=wp.mat33d, device=dev)
+        wp.launch(
+            ek.vertex_von_mises_kernel,
+            dim=(B, M),
+            inputs=[tet_stress, self._tets, self._volume, self._vertex_weight, N, vstress],
+            device=dev,
+        )
+        vm = wp.zeros(B * N, dtype=wp.float64, device=dev)
+        wp.launch(ek.von_mises_kernel, dim=B * N, inputs=[vstress, vm], device=dev)
+
+        # reaction forces on fixed components: the gradient of Pi there (before constraints)
+        active = self._active_array(np.ones(B, dtype=bool))
+        self._assemble(active)
+        grad = self.system.gradient.numpy().reshape(B, self.rows_per_problem, 3)
+        reaction = np.where(self.fixed_mask[None], grad[:, :N], 0.0)
+
+        q = self._q.numpy().reshape(B, self.rows_per_problem, 3)
+        travel = {n: q[:, N + d, 0].copy() for d, n in enumerate(self.dof_names)}
+        body_force, body_torque, cn, cf, cs = {}, {}, {}, {}, {}
+        dof_force = {n: np.zeros(B) for n in self.dof_names}
+        max_pen = np.zeros(B)
+        if K:
+            self._contact_state(self._positions, self._travel)
+            fn = self._c_force.numpy().reshape(B, S, K)
+            nrm = self._c_normal.numpy().reshape(B, S, K, 3)
+            ff = self._c_friction.numpy().reshape(B, S, K, 3)
+            st = self._c_stick.numpy().reshape(B, S, K).astype(bool)
+            gap = self._c_gap.numpy().reshape(B, S, K)
+            max_pen = np.maximum(0.0, -gap.min(axis=(1, 2)))
+            pos = self._positions.numpy().reshape(B, N, 3)[:, self.mesh.surface_vertices]
+            rot, origin, axes = self._world_frames()
+            for k, body in enumerate(self.bodies):
+                on_vertex = fn[:, :, k, None] * nrm[:, :, k] + ff[:, :, k]  # force of the body on the object
+                f_body = -on_vertex.sum(axis=1)
+                d = self._body_dof[k]
+                placed = origin[:, k] + (travel[self.dof_names[d]][:, None] if d >= 0 else 0.0) * axes[:, k]
+                body_force[body.name] = f_body
+                body_torque[body.name] = -np.cross(pos - placed[:, None], on_vertex).sum(axis=1)
+                cn[body.name] = fn[:, :, k].copy()
+                cf[body.name] = ff[:, :, k].copy()
+                cs[body.name] = st[:, :, k] & (fn[:, :, k] > 0)
+                if d >= 0:
+                    # the body pushes the object along its axis: -(force on the body) . axis
+                    dof_force[self.dof_names[d]] += -np.einsum("bi,bi->b", f_body, axes[:, k])
+        ts = tet_stress.numpy().reshape(B, M, 3, 3) if self.options.record_tet_stress else None
+        return Equilibrium(
+            mesh=self.mesh,
+            status=self.status.copy(),
+            load_fraction=load_fraction.copy(),
+            newton_iterations=newton.copy(),
+            linear_iterations=linear.copy(),
+            residual=residual.copy(),
+            displacement=q[:, :N].copy(),
+            travel=travel,
+            dof_force=dof_force,
+            vertex_stress=vstress.numpy().reshape(B, N, 3, 3),
+            von_mises=vm.numpy().reshape(B, N),
+            strain_energy=energy.numpy().copy(),
+            inverted_tets=inverted.numpy().copy(),
+            body_force=body_force,
+            body_torque=body_torque,
+            contact_normal_force=cn,
+            contact_friction_force=cf,
+            contact_sticking=cs,
+            max_penetration=max_pen,
+            reaction_force=reaction,
+            tet_stress=ts,
+        )

@@ -1,0 +1,227 @@
+"""The batched block-sparse Newton system and its linear solvers.
+
+Unknowns of one problem are R = N + D block rows of 3 scalars: the N vertex displacements, then one
+row per travel degree of freedom (only its first component is used; the other two are identity
+rows). B problems on the same mesh form one block-diagonal BSR matrix of B * R block rows; Warp's
+batched Krylov solvers run the B conjugate-gradient iterations in lockstep, each with its own step
+sizes and its own convergence test.
+
+Sparsity of one problem: (v, w) for every mesh edge and vertex, (N+d, N+d), and (N+d, s), (s, N+d)
+for every travel dof d and every surface vertex s (a body driven by d may touch any surface vertex).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+import warp as wp
+import warp.optim.linear as wpl
+import warp.sparse as wps
+
+from .mesh import TetMesh
+
+f64 = wp.float64
+
+
+@dataclass
+class BlockPattern:
+    """Block sparsity of one problem and the block index of every element/contact coupling."""
+
+    num_vertices: int
+    num_dofs: int
+    rows: np.ndarray  # (nnz,) block row, sorted by (row, col)
+    cols: np.ndarray  # (nnz,)
+    tet_blocks: np.ndarray  # (M, 16) block of (tets[e, a], tets[e, c]) at 4a + c
+    vertex_diag: np.ndarray  # (N,)
+    dof_diag: np.ndarray  # (D,)
+    dof_vertex: np.ndarray  # (D, S) block (N + d, surface[s])
+    vertex_dof: np.ndarray  # (D, S) block (surface[s], N + d)
+
+    @property
+    def rows_per_problem(self) -> int:
+        return self.num_vertices + self.num_dofs
+
+    @property
+    def nnz(self) -> int:
+        return len(self.rows)
+
+    @classmethod
+    def build(cls, mesh: TetMesh, num_dofs: int) -> BlockPattern:
+        n = mesh.num_vertices
+        s = mesh.surface_vertices
+        t = mesh.tets
+        pairs = [np.stack([t[:, a], t[:, c]], axis=1) for a in range(4) for c in range(4)]
+        dof_rows = n + np.arange(num_dofs)
+        extra = [np.stack([dof_rows, dof_rows], axis=1)]
+        for d in dof_rows:
+            extra.append(np.stack([np.full(len(s), d), s], axis=1))
+            extra.append(np.stack([s, np.full(len(s), d)], axis=1))
+        allp = np.concatenate(pairs + extra).astype(np.int64)
+        key = np.unique(allp[:, 0] * (n + num_dofs) + allp[:, 1])
+        rows, cols = key // (n + num_dofs), key % (n + num_dofs)
+
+        def index(r, c):
+            k = np.searchsorted(key, np.asarray(r) * (n + num_dofs) + np.asarray(c))
+            return k.astype(np.int32)
+
+        tet_blocks = np.stack([index(t[:, a], t[:, c]) for a in range(4) for c in range(4)], axis=1)
+        return cls(
+            num_vertices=n,
+            num_dofs=num_dofs,
+            rows=rows.astype(np.int32),
+            cols=cols.astype(np.int32),
+            tet_blocks=tet_blocks,
+            vertex_diag=index(np.arange(n), np.arange(n)),
+            dof_diag=index(dof_rows, dof_rows),
+            dof_vertex=np.array([index(np.full(len(s), d), s) for d in dof_rows], np.int32).reshape(
+                num_dofs, len(s)
+            ),
+            vertex_dof=np.array([index(s, np.full(len(s), d)) for d in dof_rows], np.int32).reshape(
+                num_dofs, len(s)
+            ),
+        )
+
+
+@wp.kernel
+def constrain_system_kernel(
+    block_rows: wp.array(dtype=wp.int32),
+    block_cols: wp.array(dtype=wp.int32),
+    free: wp.array(dtype=wp.vec3d),
+    diagonal_shift: wp.array(dtype=wp.vec3d),
+    rows_per_problem: int,
+    blocks_per_problem: int,
+    hessian: wp.array(dtype=wp.mat33d),
+):
+    """Zero the rows and columns of fixed components (free = 0), put 1 on their diagonal, and add the
+    regularization ``diagonal_shift`` to the free diagonal entries."""
+    b, k = wp.tid()
+    r = block_rows[k]
+    c = block_cols[k]
+    fr = free[r]
+    fc = free[c]
+    i = b * blocks_per_problem + k
+    A = hessian[i]
+    for p in range(3):
+        for q in range(3):
+            A[p, q] = A[p, q] * fr[p] * fc[q]
+    if r == c:
+        shift = diagonal_shift[b * rows_per_problem + r]
+        for p in range(3):
+            A[p, p] = A[p, p] + (f64(1.0) - fr[p]) + fr[p] * shift[p]
+    hessian[i] = A
+
+
+class BatchedSystem:
+    """BSR Hessian, gradient and increment of B problems with a shared pattern, and their solvers."""
+
+    def __init__(self, pattern: BlockPattern, batch_size: int, device):
+        self.pattern = pattern
+        self.batch_size = batch_size
+        self.device = device
+        rpp, nnz = pattern.rows_per_problem, pattern.nnz
+        offs = (np.arange(batch_size, dtype=np.int64) * rpp)[:, None]
+        rows = (pattern.rows[None, :] + offs).ravel().astype(np.int32)
+        cols = (pattern.cols[None, :] + offs).ravel().astype(np.int32)
+        self.matrix = wps.bsr_zeros(batch_size * rpp, batch_size * rpp, block_type=wp.mat33d, device=device)
+        wps.bsr_set_from_triplets(
+            self.matrix,
+            wp.array(rows, dtype=wp.int32, device=device),
+            wp.array(cols, dtype=wp.int32, device=device),
+            values=None,
+            prune_numerical_zeros=False,
+        )
+        if self.matrix.nnz_sync() != batch_size * nnz:
+            raise RuntimeError("internal error: BSR pattern size mismatch")
+        got = self.matrix.columns.numpy()[: batch_size * nnz]
+        if not np.array_equal(got, cols):
+            raise RuntimeError("internal error: BSR block order differs from the precomputed pattern")
+        self.values = self.matrix.values
+        self.block_rows = wp.array(pattern.rows, dtype=wp.int32, device=device)
+        self.block_cols = wp.array(pattern.cols, dtype=wp.int32, device=device)
+        self.gradient = wp.zeros(batch_size * rpp, dtype=wp.vec3d, device=device)
+        self.rhs = wp.zeros_like(self.gradient)
+        self.increment = wp.zeros_like(self.gradient)
+        self.batch_offsets = wp.array(np.arange(batch_size + 1) * rpp * 3, dtype=wp.int32, device=device)
+        self.operator = wpl.aslinearoperator(
+            self.matrix, batch_offsets=self.batch_offsets, max_batch_length=rpp * 3
+        )
+        self._cg = None
+        self._csr_cache = None
+
+    def zero(self):
+        self.values.zero_()
+        self.gradient.zero_()
+
+    def constrain(self, free, diagonal_shift):
+        wp.launch(
+            constrain_system_kernel,
+            dim=(self.batch_size, self.pattern.nnz),
+            inputs=[
+                self.block_rows,
+                self.block_cols,
+                free,
+                diagonal_shift,
+                self.pattern.rows_per_problem,
+                self.pattern.nnz,
+                self.values,
+            ],
+            device=self.device,
+        )
+
+    # -------------------------------------------------------------- linear solves: H increment = rhs
+    def solve_cg(self, rtol: float, maxiter: int) -> tuple[int, float]:
+        """Block-Jacobi preconditioned CG on all problems at once (per-problem step sizes and tolerances)."""
+        M = wpl.preconditioner(self.matrix, ptype="block_jacobi_direct")
+        self.increment.zero_()
+        if self._cg is None:
+            self._cg = wpl.cg(
+                self.operator,
+                self.rhs,
+                self.increment,
+                tol=rtol,
+                maxiter=maxiter,
+                M=M,
+                check_every=10,
+                use_cuda_graph=False,
+                run=False,
+            )
+        iters, residual, _ = self._cg(M=M)
+        return int(iters), float(residual)
+
+    def host_matrix(self) -> sp.csr_matrix:
+        """The (constrained) Hessian of all problems as a SciPy CSR matrix."""
+        B, rpp, nnz = self.batch_size, self.pattern.rows_per_problem, self.pattern.nnz
+        values = self.values.numpy()[: B * nnz]
+        offsets = self.matrix.offsets.numpy()[: B * rpp + 1]
+        cols = self.matrix.columns.numpy()[: B * nnz]
+        return sp.bsr_matrix((values, cols, offsets), shape=(B * rpp * 3, B * rpp * 3)).tocsr()
+
+    def _set_increment(self, x: np.ndarray):
+        self.increment.assign(wp.array(x.reshape(-1, 3), dtype=wp.vec3d, device=self.device))
+
+    def solve_direct(self) -> tuple[int, float]:
+        """Sparse LU (SuperLU) of the whole block-diagonal system on the host."""
+        A = self.host_matrix().tocsc()
+        b = self.rhs.numpy().reshape(-1)
+        x = spla.splu(A, permc_spec="COLAMD").solve(b)
+        self._set_increment(x)
+        return 1, float(np.linalg.norm(A @ x - b))
+
+    def solve_amg(self, near_nullspace: np.ndarray, rtol: float, maxiter: int) -> tuple[int, float]:
+        """CG preconditioned by smoothed-aggregation algebraic multigrid (pyamg) on the host, with the
+        rigid-body modes as near-null space (about 20-30 iterations for elasticity at any mesh size)."""
+        import pyamg
+
+        A = self.host_matrix()
+        b = self.rhs.numpy().reshape(-1)
+        if not np.any(b):
+            self._set_increment(np.zeros_like(b))
+            return 0, 0.0
+        ml = pyamg.smoothed_aggregation_solver(A, B=near_nullspace, BH=near_nullspace.copy())
+        residuals: list[float] = []
+        x = ml.solve(b, tol=rtol, accel="cg", maxiter=maxiter, residuals=residuals)
+        self._set_increment(x)
+        return len(residuals), float(residuals[-1]) if residuals else 0.0

@@ -1,0 +1,343 @@
+r"""DefGraspNets: a MeshGraphNets encode-process-decode network on the grasp multigraph (thesis §7.3).
+
+Encode (three MLPs, LayerNorm on the outputs)
+    ``h_i = eps_V(x_i)``, ``m_ij = eps_M(e^M_ij)``, ``c_ij = eps_C(e^C_ij)``        (latent size l = 128)
+Process (L = 15 blocks with unshared weights; Pfaff et al. 2021, residual connections)
+    ``m'_ij = f_M(m_ij, h_i, h_j)``,  ``c'_ij = f_C(c_ij, h_i, h_j)``
+    ``h'_i = f_V(h_i, sum_{j->i in E^M} m'_ij, sum_{j->i in E^C} c'_ij)``
+    ``h_i <- h_i + h'_i``,  ``m_ij <- m_ij + m'_ij``,  ``c_ij <- c_ij + c'_ij``
+Decode (MLP without LayerNorm)
+    ``y_i = delta(h_i)`` = standardized [log-stress (1), scaled displacement (3)] per node.
+
+Every MLP has ``hidden_layers`` ReLU layers of width l. Edge MLPs are evaluated with their first layer split
+over the concatenation, ``W [m, h_i, h_j] = W_m m + (W_r h)_i + (W_s h)_j``, so the node terms are computed
+once per node and gathered (same function, ~3x fewer first-layer FLOPs on edges). Aggregation is a
+vectorized ``index_add_`` over edge targets; nothing loops over nodes or edges.
+
+Ablations (thesis Table 7.2) by constructor arguments of :class:`DefGraspNet`:
+    V1 ``outputs="separate"``: two networks, one for stress, one for displacement ("joint": one network).
+    V2 ``prediction="multi_step"``: the ramp 0 -> F_g is split in ``num_steps`` increments; each pass maps
+       the current deformed state (object and finger positions) and the next force level to the stress at
+       that level and the displacement increment; training uses ground-truth previous states (teacher
+       forcing, pairs ``(s - stride, s)`` from the ramp), prediction rolls out from the rest state.
+    V3 ``force_feature="total"``: ``F_g`` instead of ``F_g / |E^C|`` on contact edges.
+    V4 ``force_on="nodes"``: the force scalar on every node instead of on contact edges.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import torch
+from torch import Tensor, nn
+from tqdm.auto import tqdm
+
+from defgraspnets.data.normalization import Normalizer, TargetScaling
+from defgraspnets.models.graph import NODE_FINGER, GraspGraph, MultigraphFeaturizer
+
+__all__ = ["DefGraspNet", "EdgeMLP", "EncodeProcessDecode", "MLP", "ProcessorBlock"]
+
+
+class MLP(nn.Sequential):
+    """``in -> [Linear(width) -> ReLU] x hidden_layers -> Linear(out) [-> LayerNorm(out)]``."""
+
+    def __init__(
+        self, in_dim: int, out_dim: int, width: int, hidden_layers: int = 2, layer_norm: bool = True
+    ):
+        layers: list[nn.Module] = []
+        d = in_dim
+        for _ in range(hidden_layers):
+            layers += [nn.Linear(d, width), nn.ReLU()]
+            d = width
+        layers.append(nn.Linear(d, out_dim))
+        if layer_norm:
+            layers.append(nn.LayerNorm(out_dim))
+        super().__init__(*layers)
+
+
+class EdgeMLP(nn.Module):
+    """Edge update ``f(m_ij, h_i, h_j)`` of an :class:`MLP` on ``[m_ij, h_i, h_j]``, first layer split.
+
+    Args:
+        latent: size of node and edge latents. hidden_layers: >= 1 hidden layers of width ``latent``.
+
+    Shapes: edge (E, l), node (n, l), edge_index (2, E) [source j, target i] -> (E, l).
+    """
+
+    def __init__(self, latent: int, hidden_layers: int = 2):
+        super().__init__()
+        if hidden_layers < 1:
+            raise ValueError("EdgeMLP needs at least one hidden layer")
+        self.lin_edge = nn.Linear(latent, latent)
+        self.lin_target = nn.Linear(latent, latent, bias=False)
+        self.lin_source = nn.Linear(latent, latent, bias=False)
+        self.rest = MLP(latent, latent, latent, hidden_layers - 1, layer_norm=True)
+
+    def forward(self, edge: Tensor, node: Tensor, edge_index: Tensor) -> Tensor:
+        src, dst = edge_index
+        z = self.lin_edge(edge) + self.lin_target(node)[dst] + self.lin_source(node)[src]
+        return self.rest(torch.relu(z))
+
+
+class ProcessorBlock(nn.Module):
+    """One message-passing block over mesh and contact edges (see the module docstring).
+
+    Shapes: node (n, l), mesh (E_M, l), contact (E_C, l), indices (2, E_*) -> same shapes.
+    """
+
+    def __init__(self, latent: int, hidden_layers: int = 2):
+        super().__init__()
+        self.mesh_edge = EdgeMLP(latent, hidden_layers)
+        self.contact_edge = EdgeMLP(latent, hidden_layers)
+        self.node = MLP(3 * latent, latent, latent, hidden_layers, layer_norm=True)
+
+    @staticmethod
+    def aggregate(messages: Tensor, target: Tensor, num_nodes: int) -> Tensor:
+        """(n, l) sum of ``messages`` (E, l) over edges by target node (accumulated in >= fp32)."""
+        acc = torch.promote_types(messages.dtype, torch.float32)
+        out = torch.zeros(num_nodes, messages.shape[1], dtype=acc, device=messages.device)
+        return out.index_add_(0, target, messages.to(acc)).to(messages.dtype)
+
+    def forward(self, node: Tensor, mesh: Tensor, contact: Tensor, mesh_index: Tensor, contact_index: Tensor):
+        new_mesh = self.mesh_edge(mesh, node, mesh_index)
+        new_contact = self.contact_edge(contact, node, contact_index)
+        n = node.shape[0]
+        agg = torch.cat(
+            [
+                node,
+                self.aggregate(new_mesh, mesh_index[1], n),
+                self.aggregate(new_contact, contact_index[1], n),
+            ],
+            dim=1,
+        )
+        return node + self.node(agg), mesh + new_mesh, contact + new_contact
+
+
+class EncodeProcessDecode(nn.Module):
+    """MeshGraphNets encoder / L processor blocks / decoder on a two-edge-set multigraph.
+
+    Args:
+        node_dim, mesh_edge_dim, contact_edge_dim: input feature sizes. out_dim: outputs per node.
+        latent: latent size l. num_blocks: L. hidden_layers: hidden layers of every MLP.
+    """
+
+    def __init__(
+        self,
+        node_dim: int,
+        mesh_edge_dim: int,
+        contact_edge_dim: int,
+        out_dim: int,
+        latent: int = 128,
+        num_blocks: int = 15,
+        hidden_layers: int = 2,
+    ):
+        super().__init__()
+        self.node_encoder = MLP(node_dim, latent, latent, hidden_layers)
+        self.mesh_encoder = MLP(mesh_edge_dim, latent, latent, hidden_layers)
+        self.contact_encoder = MLP(contact_edge_dim, latent, latent, hidden_layers)
+        self.blocks = nn.ModuleList(ProcessorBlock(latent, hidden_layers) for _ in range(num_blocks))
+        self.decoder = MLP(latent, out_dim, latent, hidden_layers, layer_norm=False)
+
+    def forward(self, node: Tensor, mesh: Tensor, contact: Tensor, mesh_index: Tensor, contact_index: Tensor):
+        """(n, node_dim), (E_M, ·), (E_C, ·) normalized features -> (n, out_dim)."""
+        h, m, c = self.node_encoder(node), self.mesh_encoder(mesh), self.contact_encoder(contact)
+        for block in self.blocks:
+            h, m, c = block(h, m, c, mesh_index, contact_index)
+        return self.decoder(h)
+
+
+class DefGraspNet(nn.Module):
+    """Multigraph featurization + normalization + encode-process-decode + physical output scaling.
+
+    Args:
+        latent, num_blocks, hidden_layers: network size (thesis: 128, 15, 2).
+        outputs: ``"joint"`` or ``"separate"`` (V1). prediction: ``"one_step"`` or ``"multi_step"`` (V2).
+        num_steps: force increments of a multi-step rollout.
+        force_feature, force_on: see :class:`~defgraspnets.models.graph.MultigraphFeaturizer` (V3, V4).
+        stress_reference, modulus_reference: target scaling [Pa], see :mod:`defgraspnets.data.normalization`.
+
+    ``forward`` gives standardized outputs (n, 4) = [stress, displacement xyz]; :meth:`fields` gives von Mises
+    stress [Pa] (n,) and displacement [m] (n, 3) of the final state (one pass, or a multi-step rollout).
+    """
+
+    def __init__(
+        self,
+        latent: int = 128,
+        num_blocks: int = 15,
+        hidden_layers: int = 2,
+        outputs: str = "joint",
+        prediction: str = "one_step",
+        num_steps: int = 5,
+        force_feature: str = "distributed",
+        force_on: str = "contact_edges",
+        stress_reference: float = 1e3,
+        modulus_reference: float = 1e6,
+    ):
+        super().__init__()
+        if outputs not in ("joint", "separate"):
+            raise ValueError(f"outputs must be 'joint' or 'separate', got {outputs!r}")
+        if prediction not in ("one_step", "multi_step"):
+            raise ValueError(f"prediction must be 'one_step' or 'multi_step', got {prediction!r}")
+        if num_steps < 1:
+            raise ValueError(f"num_steps must be >= 1, got {num_steps}")
+        self.outputs, self.prediction, self.num_steps = outputs, prediction, int(num_steps)
+        self.featurizer = MultigraphFeaturizer(force_feature, force_on)
+        fz = self.featurizer
+        self.node_norm = Normalizer(fz.node_dim, "node features")
+        self.mesh_edge_norm = Normalizer(fz.mesh_edge_dim, "mesh edge features")
+        self.contact_edge_norm = Normalizer(fz.contact_edge_dim, "contact edge features")
+        self.stress_norm = Normalizer(1, "stress target")
+        self.displacement_norm = Normalizer(3, "displacement target", isotropic=True)
+        self.scaling = TargetScaling(stress_reference, modulus_reference)
+        dims = (fz.node_dim, fz.mesh_edge_dim, fz.contact_edge_dim)
+        out_dims = (4,) if outputs == "joint" else (1, 3)
+        self.networks = nn.ModuleList(
+            EncodeProcessDecode(
+                *dims, out_dim=o, latent=latent, num_blocks=num_blocks, hidden_layers=hidden_layers
+            )
+            for o in out_dims
+        )
+
+    # -------------------------------------------------------------- normalization
+    @property
+    def normalizers(self) -> tuple[Normalizer, ...]:
+        return (
+            self.node_norm,
+            self.mesh_edge_norm,
+            self.contact_edge_norm,
+            self.stress_norm,
+            self.displacement_norm,
+        )
+
+    @property
+    def normalized(self) -> bool:
+        return all(n.initialized for n in self.normalizers)
+
+    def input_positions(self, g: GraspGraph) -> Tensor:
+        """Positions of the features: rest/first contact (one-step) or the previous state (multi-step)."""
+        if self.prediction == "multi_step":
+            prev = getattr(g, "prev_displacement", None)
+            if prev is None:
+                raise KeyError(
+                    "multi_step prediction needs 'prev_displacement' in the batch "
+                    "(set data.ramp_stride so the dataset provides previous ramp states)"
+                )
+            return g.pos + prev
+        return g.pos
+
+    def scaled_targets(self, g: GraspGraph) -> tuple[Tensor, Tensor]:
+        """Scaled (not yet standardized) targets: log-stress (n, 1) and ``d E / E_ref`` (n, 3).
+
+        Multi-step: the displacement target is the increment ``d_s - d_{s'}`` from the previous state.
+        """
+        if getattr(g, "stress", None) is None or getattr(g, "displacement", None) is None:
+            raise KeyError("the batch has no 'stress'/'displacement' targets")
+        disp = g.displacement
+        if self.prediction == "multi_step":
+            disp = disp - g.prev_displacement
+        e_node = g.youngs_modulus[g.node_graph()]
+        return (
+            self.scaling.stress_to_target(g.stress).unsqueeze(1),
+            self.scaling.displacement_to_target(disp, e_node),
+        )
+
+    def normalized_targets(self, g: GraspGraph) -> Tensor:
+        """(n, 4) standardized targets matching :meth:`forward`."""
+        s, d = self.scaled_targets(g)
+        return torch.cat([self.stress_norm(s), self.displacement_norm(d)], dim=1)
+
+    def loss_mask(self, g: GraspGraph) -> tuple[Tensor, Tensor]:
+        """Nodes in the stress and in the displacement loss: object nodes (multi-step: displacement of the
+        finger nodes too, their rigid travel drives the rollout)."""
+        obj = g.node_type != NODE_FINGER
+        if self.prediction == "multi_step":
+            return obj, torch.ones_like(obj)
+        return obj, obj
+
+    @torch.no_grad()
+    def fit_normalizers(self, batches: Iterable[GraspGraph], progress: bool = True) -> None:
+        """Measure feature and target statistics on training batches (stored as buffers)."""
+        for norm in self.normalizers:
+            norm.reset()
+        try:
+            total = len(batches)  # type: ignore[arg-type]
+        except TypeError:
+            total = None
+        device = next(self.parameters()).device
+        for g in tqdm(
+            batches, total=total, desc="normalization statistics", disable=not progress, leave=False
+        ):
+            g = g.to(device)
+            node, mesh, contact = self.featurizer(g, self.input_positions(g))
+            self.node_norm.accumulate(node)
+            self.mesh_edge_norm.accumulate(mesh)
+            if contact.shape[0]:
+                self.contact_edge_norm.accumulate(contact)
+            s, d = self.scaled_targets(g)
+            mask_s, mask_d = self.loss_mask(g)
+            self.stress_norm.accumulate(s[mask_s])
+            self.displacement_norm.accumulate(d[mask_d])
+        if not self.contact_edge_norm.num_accumulated:
+            raise RuntimeError(
+                "no contact edges in the statistics batches: are the fingers within the contact "
+                "radius of the object at first contact?"
+            )
+        for norm in self.normalizers:
+            norm.finalize()
+
+    # -------------------------------------------------------------- prediction
+    def forward(self, g: GraspGraph, pos: Tensor | None = None, force: Tensor | None = None) -> Tensor:
+        """(n, 4) standardized outputs for graph(s) ``g`` at positions ``pos`` and graph forces ``force``."""
+        if not self.normalized:
+            raise RuntimeError(
+                "DefGraspNet normalizers are not fitted: call fit_normalizers() on training data "
+                "or load a trained checkpoint"
+            )
+        node, mesh, contact = self.featurizer(g, self.input_positions(g) if pos is None else pos, force)
+        dtype = node.dtype
+        # features and normalization in the dtype of the positions (fp32/fp64); the encode-process-decode
+        # networks may run in a lower precision (e.g. bf16 for inference, see ``DefGraspNetsPredictor``)
+        net_dtype = self.networks[0].node_encoder[0].weight.dtype
+        node, mesh, contact = (
+            self.node_norm(node).to(net_dtype),
+            self.mesh_edge_norm(mesh).to(net_dtype),
+            self.contact_edge_norm(contact).to(net_dtype),
+        )
+        outs = [net(node, mesh, contact, g.mesh_edge_index, g.contact_edge_index) for net in self.networks]
+        return (outs[0] if len(outs) == 1 else torch.cat(outs, dim=1)).to(dtype)
+
+    def to_physical(self, out: Tensor, g: GraspGraph) -> tuple[Tensor, Tensor]:
+        """Standardized outputs (n, 4) -> von Mises stress (n,) [Pa], displacement (increment) (n, 3) [m]."""
+        e_node = g.youngs_modulus[g.node_graph()].to(out.dtype)
+        stress = self.scaling.stress_from_target(self.stress_norm.inverse(out[:, :1]).squeeze(1))
+        disp = self.scaling.displacement_from_target(self.displacement_norm.inverse(out[:, 1:]), e_node)
+        return stress, disp
+
+    def fields(self, g: GraspGraph) -> tuple[Tensor, Tensor]:
+        """Von Mises stress (n,) [Pa] and displacement (n, 3) [m] at force ``g.force`` from the first-contact
+        state. Differentiable w.r.t. ``g.pos`` (finger node positions), ``g.force`` and ``g.youngs_modulus``.
+
+        One-step: one pass. Multi-step: ``num_steps`` passes at forces ``F_g j / num_steps``; object nodes
+        move by the predicted increments, each finger moves rigidly by the mean predicted increment of its
+        nodes along its closing direction.
+        """
+        if self.prediction == "one_step":
+            return self.to_physical(self.forward(g, g.pos), g)
+        disp = torch.zeros_like(g.pos)
+        is_finger = g.node_type == NODE_FINGER
+        node_graph = g.node_graph()
+        finger_key = node_graph * 2 + g.finger_id.clamp_min(0)
+        nkeys = 2 * g.graph_count
+        count = torch.zeros(nkeys, dtype=g.pos.dtype, device=g.pos.device).index_add_(
+            0, finger_key[is_finger], torch.ones_like(finger_key[is_finger], dtype=g.pos.dtype)
+        )
+        stress = None
+        for j in range(1, self.num_steps + 1):
+            stress, inc = self.to_physical(self.forward(g, g.pos + disp, g.force * (j / self.num_steps)), g)
+            along = (inc * g.closing_dir).sum(1)
+            travel = torch.zeros(nkeys, dtype=inc.dtype, device=inc.device).index_add_(
+                0, finger_key[is_finger], along[is_finger]
+            ) / count.clamp_min(1.0)
+            finger_inc = travel[finger_key].unsqueeze(1) * g.closing_dir
+            disp = disp + torch.where(is_finger.unsqueeze(1), finger_inc, inc)
+        return stress, disp

@@ -1,0 +1,304 @@
+r"""Inference API of DefGraspNets: a trained checkpoint -> stress and displacement fields of many grasps.
+
+    predictor = DefGraspNetsPredictor.from_checkpoint("checkpoints/defgraspnets.ckpt", device="cuda")
+    out = predictor.predict(tet_mesh, force=15.0, youngs_modulus=2e5, fingers=finger_geometry,
+                            gripper_pose=poses, closing_distance=dists)        # G grasps of one object
+    out.stress        # (G, N) von Mises stress [Pa] at the object's vertices
+    out.displacement  # (G, N, 3) displacement [m]
+
+Fingers can be given three ways (all in the object frame):
+
+1. ``finger_vertices`` (G, 2, V, 3) at first contact, with ``finger_faces`` (T, 3) and ``closing_direction``
+   (G, 2, 3);
+2. ``finger_pose`` (G, 2, 4, 4) at first contact with a :class:`FingerGeometry`;
+3. ``gripper_pose`` (G, 4, 4) of the fully open gripper and ``closing_distance`` (G, 2) [m] (joint states
+   ``p_g`` of thesis §7.5) with a :class:`FingerGeometry`: finger ``f`` sits at
+   ``T_f = T_gripper T_open,f`` and closes by ``p_f`` along ``c_f = R_f a`` (``a`` the closing axis in the
+   finger frame): ``t_f <- t_f + p_f c_f``.
+
+Speed (one H100, L = 15, latent 128; 100 grasps of a 1000-vertex object with two 225-vertex finger pads,
+1.4 M mesh edges, random weights): graph construction 3.4 ms (``contact_backend="torch"``); forward 186 ms
+in fp32, 76 ms with ``compile=True``, 49 ms with ``precision="bf16", compile=True`` (53 ms end to end;
+stress within ~2.5 % of fp32). A 4096-vertex object: 669 ms fp32, 258 ms fp32 compiled. Forward + backward
+of 10 grasps (fp32, eager): 72 ms. The cost is the memory traffic of the per-edge MLPs.
+
+All tensor inputs may require grad: :meth:`DefGraspNetsPredictor.predict` with ``grad=True`` keeps the
+graph so that an objective ``Q(out)`` can be back-propagated to finger vertices, gripper poses or closing
+distances (contact-edge selection is discrete; features and the network are differentiable).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from defgraspnets.models.graph import FingerTemplate, GraspGraph, ObjectTemplate, build_grasp_batch
+from defgraspnets.models.meshgraphnet import DefGraspNet
+
+__all__ = ["DefGraspNetsPredictor", "FingerGeometry", "GraspFieldPrediction", "finger_contact_poses"]
+
+
+@dataclass(frozen=True)
+class FingerGeometry:
+    """The parallel-jaw finger pads.
+
+    Attributes:
+        vertices: (V, 3) finger-pad vertices in the finger frame [m]. faces: (T, 3).
+        closing_axis: (3,) unit closing axis in the finger frame.
+        open_pose: (2, 4, 4) pose of each finger frame in the gripper frame with the gripper fully open
+            (needed only for gripper-pose input).
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    closing_axis: np.ndarray
+    open_pose: np.ndarray | None = None
+
+
+_PER_GRASP = ("finger_vertices", "closing_direction", "finger_pose", "gripper_pose", "closing_distance")
+
+
+def _t(x, device, dtype) -> Tensor:
+    return (
+        x.to(device=device, dtype=dtype)
+        if isinstance(x, Tensor)
+        else torch.as_tensor(np.asarray(x), device=device, dtype=dtype)
+    )
+
+
+def finger_contact_poses(
+    gripper_pose: Tensor, open_pose: Tensor, closing_axis: Tensor, closing_distance: Tensor
+):
+    """Finger poses at first contact and closing directions (differentiable).
+
+    Args:
+        gripper_pose: (G, 4, 4) open-gripper poses in the object frame. open_pose: (2, 4, 4) finger frames in
+            the gripper frame. closing_axis: (3,) in the finger frame. closing_distance: (G, 2) [m].
+
+    Returns:
+        pose (G, 2, 4, 4) and closing direction (G, 2, 3) in the object frame.
+    """
+    pose = gripper_pose.unsqueeze(1) @ open_pose.unsqueeze(0)  # (G, 2, 4, 4)
+    direction = pose[..., :3, :3] @ closing_axis
+    direction = direction / direction.norm(dim=-1, keepdim=True)
+    translation = pose[..., :3, 3] + closing_distance.unsqueeze(-1) * direction
+    top = torch.cat([pose[..., :3, :3], translation.unsqueeze(-1)], dim=-1)
+    return torch.cat([top, pose[..., 3:, :]], dim=-2), direction
+
+
+@dataclass
+class GraspFieldPrediction:
+    """Predicted fields of G grasps on one object with N vertices.
+
+    Attributes:
+        stress: (G, N) von Mises stress [Pa]. displacement: (G, N, 3) [m]. contact_edges: (G,) number of
+        (undirected) contact pairs of each grasp (0 means the fingers do not touch the object within eps).
+    """
+
+    stress: Tensor
+    displacement: Tensor
+    contact_edges: Tensor
+
+    @property
+    def deformation(self) -> Tensor:
+        """(G, N) ``|d|`` [m]."""
+        return self.displacement.norm(dim=-1)
+
+    @property
+    def mean_stress(self) -> Tensor:
+        return self.stress.mean(dim=-1)
+
+    @property
+    def mean_deformation(self) -> Tensor:
+        return self.deformation.mean(dim=-1)
+
+
+class DefGraspNetsPredictor:
+    """Batched, device-agnostic DefGraspNets inference for grasps of one object.
+
+    Args:
+        net: a trained (normalized) :class:`DefGraspNet`; the predictor moves (and may cast) it.
+        contact_radius: eps [m] used in training.
+        device: ``"cpu"``, ``"cuda"``, ... contact_backend: see ``contact_pairs``.
+        precision: ``"fp32"``; ``"bf16"`` runs the encode-process-decode networks in bfloat16 (graph
+            features, normalization and outputs stay fp32; for fast GPU scoring); ``"fp64"`` everything.
+        compile: ``torch.compile`` the networks (dynamic shapes; the first calls compile).
+    """
+
+    def __init__(
+        self,
+        net: DefGraspNet,
+        contact_radius: float,
+        device: str | torch.device = "cpu",
+        contact_backend: str = "auto",
+        precision: str = "fp32",
+        compile: bool = False,
+    ):
+        if not net.normalized:
+            raise ValueError("the network has no normalization statistics (not trained)")
+        if precision not in ("fp32", "bf16", "fp64"):
+            raise ValueError(f"precision must be 'fp32', 'bf16' or 'fp64', got {precision!r}")
+        self.device = torch.device(device)
+        self.net = net.to(self.device).eval()
+        if precision == "fp64":
+            self.net.double()
+        elif precision == "bf16":
+            self.net.networks.to(torch.bfloat16)
+        if compile:
+            for network in self.net.networks:
+                network.compile(dynamic=True)
+        self.contact_radius = float(contact_radius)
+        self.contact_backend = contact_backend
+        self._objects: dict[int, tuple[object, ObjectTemplate]] = {}
+
+    @classmethod
+    def from_checkpoint(
+        cls, path: str | Path, device: str | torch.device = "cpu", **kwargs
+    ) -> DefGraspNetsPredictor:
+        """Load a :class:`~defgraspnets.models.defgraspnets_module.DefGraspNetsModule` checkpoint."""
+        from defgraspnets.models.defgraspnets_module import DefGraspNetsModule
+
+        path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"checkpoint not found: {path}")
+        module = DefGraspNetsModule.load_from_checkpoint(path, map_location="cpu")
+        return cls(module.net, module.contact_radius_m, device, **kwargs)
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """Dtype of positions, features and outputs (that of the normalization statistics)."""
+        return self.net.node_norm.mean.dtype
+
+    def object_template(self, obj) -> ObjectTemplate:
+        """Template of a TetMesh, a ``(points, tets)`` pair or an :class:`ObjectTemplate` (cached)."""
+        if isinstance(obj, ObjectTemplate):
+            return obj
+        key = id(obj)
+        if key not in self._objects or self._objects[key][0] is not obj:
+            if hasattr(obj, "tets") and hasattr(obj, "points"):
+                t = ObjectTemplate.from_tet_mesh(obj)
+            else:
+                points, tets = obj
+                t = ObjectTemplate.from_mesh(points, tets)
+            self._objects[key] = (obj, t)
+        return self._objects[key][1]
+
+    def build(
+        self,
+        obj,
+        force,
+        youngs_modulus,
+        *,
+        finger_vertices=None,
+        finger_faces=None,
+        closing_direction=None,
+        fingers: FingerGeometry | None = None,
+        finger_pose=None,
+        gripper_pose=None,
+        closing_distance=None,
+    ) -> GraspGraph:
+        """The batched multigraph of G grasps (see the module docstring for the finger inputs)."""
+        dev, dt = self.device, self.dtype
+        if finger_vertices is not None:
+            if finger_faces is None or closing_direction is None:
+                raise ValueError("finger_vertices needs finger_faces and closing_direction")
+            fv = _t(finger_vertices, dev, dt)
+            finger = FingerTemplate.from_mesh(np.zeros((fv.shape[2], 3)), finger_faces, dtype=dt)
+            cd = _t(closing_direction, dev, dt)
+        else:
+            if fingers is None:
+                raise ValueError(
+                    "give finger_vertices (+ finger_faces, closing_direction), or fingers= with "
+                    "finger_pose or gripper_pose + closing_distance"
+                )
+            finger = FingerTemplate.from_mesh(fingers.vertices, fingers.faces, dtype=dt)
+            axis = _t(fingers.closing_axis, dev, dt)
+            if finger_pose is not None:
+                pose = _t(finger_pose, dev, dt)
+                cd = pose[..., :3, :3] @ axis
+            elif gripper_pose is not None and closing_distance is not None:
+                if fingers.open_pose is None:
+                    raise ValueError(
+                        "gripper_pose input needs FingerGeometry.open_pose (finger frames in gripper frame)"
+                    )
+                pose, cd = finger_contact_poses(
+                    _t(gripper_pose, dev, dt),
+                    _t(fingers.open_pose, dev, dt),
+                    axis,
+                    _t(closing_distance, dev, dt),
+                )
+            else:
+                raise ValueError("fingers= needs finger_pose, or gripper_pose and closing_distance")
+            verts = finger.vertices.to(dev)
+            fv = (pose[..., None, :3, :3] @ verts.unsqueeze(-1)).squeeze(-1) + pose[..., None, :3, 3]
+        g = fv.shape[0]
+        force = _t(force, dev, dt).reshape(-1).expand(g)
+        youngs = _t(youngs_modulus, dev, dt).reshape(-1).expand(g)
+        if not torch.all(youngs > 0):
+            raise ValueError("youngs_modulus must be positive [Pa]")
+        return build_grasp_batch(
+            self.object_template(obj),
+            finger,
+            fv,
+            cd,
+            force,
+            youngs,
+            self.contact_radius,
+            self.contact_backend,
+        )
+
+    def predict(
+        self, obj, force, youngs_modulus, *, grad: bool = False, batch_size: int | None = None, **fingers
+    ) -> GraspFieldPrediction:
+        """Fields of G grasps of object ``obj`` (TetMesh, ``(points, tets)`` or ObjectTemplate).
+
+        Args:
+            force: F_g [N], scalar or (G,). youngs_modulus: E [Pa], scalar or (G,).
+            grad: keep the autograd graph (for gradient-based grasp refinement).
+            batch_size: grasps per forward pass (default: all at once).
+            **fingers: finger inputs of :meth:`build`.
+        """
+        template = self.object_template(obj)
+        with torch.set_grad_enabled(grad):
+            g = self.build(template, force, youngs_modulus, **fingers)
+            count = g.graph_count
+            step = batch_size or count
+            if step >= count:
+                return self._predict_batch(g, template.num_nodes)
+            parts = []
+            for start in range(0, count, step):
+                sub = {
+                    k: (v[start : start + step] if k in _PER_GRASP and v is not None else v)
+                    for k, v in fingers.items()
+                }
+                f = _t(force, self.device, self.dtype).reshape(-1).expand(count)[start : start + step]
+                e = (
+                    _t(youngs_modulus, self.device, self.dtype)
+                    .reshape(-1)
+                    .expand(count)[start : start + step]
+                )
+                parts.append(self._predict_batch(self.build(template, f, e, **sub), template.num_nodes))
+            return GraspFieldPrediction(
+                *(
+                    torch.cat([getattr(p, k) for p in parts])
+                    for k in ("stress", "displacement", "contact_edges")
+                )
+            )
+
+    def _predict_batch(self, g: GraspGraph, n_obj: int) -> GraspFieldPrediction:
+        stress, disp = self.net.fields(g)
+        count = g.graph_count
+        n = g.num_nodes // count
+        contacts = (
+            torch.zeros(count, dtype=torch.long, device=g.pos.device).index_add_(
+                0, g.batch[g.contact_edge_index[1]], torch.ones_like(g.contact_edge_index[1])
+            )
+            // 2
+        )
+        return GraspFieldPrediction(
+            stress.reshape(count, n)[:, :n_obj], disp.reshape(count, n, 3)[:, :n_obj], contacts
+        )

@@ -1,0 +1,179 @@
+"""LightningModule training the wrench CNN (thesis §3.4) and mapping depth images to wrenches.
+
+Loss: mean squared error over the six wrench components in SI units (N^2 and (N m)^2 mixed, as the
+thesis reports it: validation MSE 0.03 poking, 0.057 forearm, 0.1 combined). Optimizer: SGD,
+learning rate 0.01 "with no decay"; the thesis does not state a momentum, so the default is plain
+SGD (momentum 0, the Keras and PyTorch default), overridable.
+
+Logged metrics (``train/``, ``val/``, ``test/``): ``loss`` (the MSE), ``mse_<component>`` per
+component, ``force_rmse`` = sqrt(mean over samples and x, y, z of the squared force error) [N] and
+``torque_rmse`` likewise [N m].
+
+Inference: :meth:`WrenchRegressionModule.predict_wrench` takes raw depth images (numpy or torch,
+(H, W) or (B, H, W)) with their reference image(s), applies the training normalization
+(:func:`defgraspnets.data.tactile_datamodule.normalize_depth`) and returns (6,) or (B, 6) in the
+input's type. The reference image of a single-PV-state datamodule is kept in the checkpoint.
+"""
+
+from __future__ import annotations
+
+import lightning as L
+import numpy as np
+import torch
+from torch import nn
+from torchmetrics import MeanSquaredError
+
+from defgraspnets.data.tactile_datamodule import normalize_depth
+from defgraspnets.data.tactile_schema import WRENCH_COMPONENTS
+
+__all__ = ["WrenchRegressionModule"]
+
+_SHORT = ("fx", "fy", "fz", "tx", "ty", "tz")
+_STAGES = ("train", "val", "test")
+assert len(_SHORT) == len(WRENCH_COMPONENTS)
+
+
+class WrenchRegressionModule(L.LightningModule):
+    """Train / evaluate / run a depth-image -> wrench network.
+
+    Args:
+        net: the network, (B, 1, H, W) -> (B, 6), e.g. :class:`~defgraspnets.models.wrench_cnn.WrenchCNN`.
+        lr: SGD learning rate (thesis: 0.01, constant).
+        momentum: SGD momentum (not given in the thesis; 0).
+        weight_decay: L2 penalty (0).
+        depth_scale: input normalization length [m]; must equal the datamodule's.
+    """
+
+    def __init__(
+        self,
+        net: nn.Module,
+        lr: float = 0.01,
+        momentum: float = 0.0,
+        weight_decay: float = 0.0,
+        depth_scale: float = 0.01,
+    ):
+        super().__init__()
+        self.save_hyperparameters(logger=False, ignore=["net"])
+        self.net = net
+        self.loss_fn = nn.MSELoss()
+        # keys must not shadow nn.Module attributes ("train"), hence the suffix
+        self.metrics = nn.ModuleDict({f"{stage}_mse": MeanSquaredError(num_outputs=6) for stage in _STAGES})
+        self.reference_depth: torch.Tensor | None = None
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, 1, H, W) normalized input -> (B, 6) wrench [N, N m]."""
+        return self.net(x)
+
+    # ------------------------------------------------------------------ training
+    def on_fit_start(self) -> None:
+        dm = getattr(self.trainer, "datamodule", None)
+        if dm is None:
+            return
+        scale = getattr(dm, "depth_scale", None)
+        if scale is not None and not np.isclose(scale, self.hparams.depth_scale):
+            raise ValueError(
+                f"model depth_scale {self.hparams.depth_scale} differs from the datamodule's {scale}: "
+                "inference would normalize differently from training"
+            )
+        ref = getattr(dm, "reference_depth", None)
+        if ref is not None:
+            self.reference_depth = torch.as_tensor(np.asarray(ref, dtype=np.float32))
+
+    def _step(self, batch, stage: str) -> torch.Tensor:
+        x, y = batch
+        pred = self(x)
+        loss = self.loss_fn(pred, y)
+        self.metrics[f"{stage}_mse"].update(pred.detach(), y)
+        self.log(
+            f"{stage}/loss", loss, on_step=stage == "train", on_epoch=True, prog_bar=True, batch_size=len(y)
+        )
+        return loss
+
+    def _log_epoch_metrics(self, stage: str) -> None:
+        metric = self.metrics[f"{stage}_mse"]
+        if metric.update_count == 0:
+            return
+        mse = metric.compute()
+        for name, value in zip(_SHORT, mse):
+            self.log(f"{stage}/mse_{name}", value)
+        self.log(f"{stage}/force_rmse", mse[:3].mean().sqrt())
+        self.log(f"{stage}/torque_rmse", mse[3:].mean().sqrt())
+        metric.reset()
+
+    def training_step(self, batch, batch_idx):
+        return self._step(batch, "train")
+
+    def validation_step(self, batch, batch_idx):
+        self._step(batch, "val")
+
+    def test_step(self, batch, batch_idx):
+        self._step(batch, "test")
+
+    def predict_step(self, batch, batch_idx):
+        x = batch[0] if isinstance(batch, list | tuple) else batch
+        return self(x)
+
+    def on_train_epoch_end(self) -> None:
+        self._log_epoch_metrics("train")
+
+    def on_validation_epoch_end(self) -> None:
+        self._log_epoch_metrics("val")
+
+    def on_test_epoch_end(self) -> None:
+        self._log_epoch_metrics("test")
+
+    def configure_optimizers(self):
+        return torch.optim.SGD(
+            self.parameters(),
+            lr=self.hparams.lr,
+            momentum=self.hparams.momentum,
+            weight_decay=self.hparams.weight_decay,
+        )
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        if self.reference_depth is not None:
+            checkpoint["reference_depth"] = self.reference_depth.cpu()
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        self.reference_depth = checkpoint.get("reference_depth")
+
+    # ------------------------------------------------------------------ inference
+    @torch.no_grad()
+    def predict_wrench(self, depth, reference=None):
+        """Wrench [N, N m] for raw depth image(s) [m].
+
+        Args:
+            depth: (H, W) or (B, H, W) depth [m], numpy or torch; NaN = no return.
+            reference: the undeformed image(s) of the same PV state, (H, W) or (B, H, W); default:
+                the reference stored from the training datamodule.
+
+        Returns:
+            (6,) or (B, 6), numpy if ``depth`` is numpy, else a torch tensor on the model's device.
+        """
+        as_numpy = not isinstance(depth, torch.Tensor)
+        d = torch.as_tensor(np.asarray(depth, dtype=np.float32) if as_numpy else depth, dtype=torch.float32)
+        if reference is None:
+            if self.reference_depth is None:
+                raise ValueError(
+                    "no reference image: pass reference= (the undeformed depth image of the PV state)"
+                )
+            reference = self.reference_depth
+        ref = torch.as_tensor(
+            np.asarray(reference, dtype=np.float32) if not isinstance(reference, torch.Tensor) else reference,
+            dtype=torch.float32,
+        )
+        single = d.ndim == 2
+        if d.ndim not in (2, 3):
+            raise ValueError(f"depth must have shape (H, W) or (B, H, W), got {tuple(d.shape)}")
+        if ref.shape[-2:] != d.shape[-2:]:
+            raise ValueError(f"reference shape {tuple(ref.shape)} does not match depth {tuple(d.shape)}")
+        x = normalize_depth(d.to(self.device), ref.to(self.device), self.hparams.depth_scale)
+        x = x.reshape(-1, 1, *x.shape[-2:])
+        was_training = self.training
+        self.eval()
+        try:
+            wrench = self(x)
+        finally:
+            self.train(was_training)
+        wrench = wrench[0] if single else wrench
+        return wrench.cpu().numpy() if as_numpy else wrench

@@ -1,0 +1,73 @@
+"""Small reference implementations and builders shared by the FEM tests (NumPy only)."""
+
+import numpy as np
+
+
+def corotated_cauchy_stress(F: np.ndarray, mu: float, lam: float) -> np.ndarray:
+    """Cauchy stress of the fixed co-rotated model, computed independently with NumPy's SVD."""
+    U, s, Vt = np.linalg.svd(F)
+    if np.linalg.det(U) < 0:
+        U[:, 2] *= -1
+        s[2] *= -1
+    if np.linalg.det(Vt) < 0:
+        Vt[2] *= -1
+        s[2] *= -1
+    J = np.prod(s)
+    psi = 2 * mu * (s - 1) + lam * (J - 1) * J / s
+    P = U @ np.diag(psi) @ Vt
+    return P @ F.T / J
+
+
+def linear_elastic_stress(grad_u: np.ndarray, E: float, nu: float) -> np.ndarray:
+    """Hooke's law sigma = lambda tr(eps) I + 2 mu eps, eps = sym(grad u)."""
+    mu = E / (2 * (1 + nu))
+    lam = E * nu / ((1 + nu) * (1 - 2 * nu))
+    eps = 0.5 * (grad_u + grad_u.T)
+    return lam * np.trace(eps) * np.eye(3) + 2 * mu * eps
+
+
+def box_pad(size=(0.02, 0.02, 0.01)):
+    """Closed outward triangle mesh of a box centred at the origin (a simple finger pad)."""
+    import trimesh
+
+    m = trimesh.creation.box(extents=size)
+    return np.asarray(m.vertices), np.asarray(m.faces)
+
+
+def gmsh_tet_mesh(build, size_field: str, name: str):
+    """Tet mesh from a gmsh OCC geometry built by ``build(occ)`` with a MathEval size field [m]."""
+    import gmsh
+
+    from defgraspnets.fem import TetMesh
+
+    gmsh.initialize()
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.add(name)
+        build(gmsh.model.occ)
+        gmsh.model.occ.synchronize()
+        f = gmsh.model.mesh.field.add("MathEval")
+        gmsh.model.mesh.field.setString(f, "F", size_field)
+        gmsh.model.mesh.field.setAsBackgroundMesh(f)
+        for k in ("Mesh.MeshSizeExtendFromBoundary", "Mesh.MeshSizeFromPoints", "Mesh.MeshSizeFromCurvature"):
+            gmsh.option.setNumber(k, 0)
+        gmsh.model.mesh.generate(3)
+        tags, coords, _ = gmsh.model.mesh.getNodes()
+        _, conn = gmsh.model.mesh.getElementsByType(4)
+    finally:
+        gmsh.finalize()
+    index = np.zeros(int(tags.max()) + 1, dtype=np.int64)
+    index[tags.astype(np.int64)] = np.arange(len(tags))
+    return TetMesh.compacted(coords.reshape(-1, 3), index[conn.astype(np.int64)].reshape(-1, 4), name=name)
+
+
+def sphere_octant_mesh(radius: float, pole_size: float, far_size: float, grading: float):
+    """The x, y, z >= 0 eighth of a sphere, refined toward the pole (0, 0, R)."""
+
+    def build(occ):
+        s = occ.addSphere(0, 0, 0, radius)
+        b = occ.addBox(0, 0, 0, 2 * radius, 2 * radius, 2 * radius)
+        occ.intersect([(3, s)], [(3, b)])
+
+    field = f"min({far_size}, {pole_size} + {grading}*Sqrt(x*x+y*y+(z-{radius})*(z-{radius})))"
+    return gmsh_tet_mesh(build, field, "octant")

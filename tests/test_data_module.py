@@ -1,0 +1,141 @@
+"""Dataset samples, generalization splits and the LightningDataModule on synthetic shards."""
+
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+import torch
+from test_data_synthetic import make_shards
+
+from defgraspnets.data.datamodule import GraspDataModule
+from defgraspnets.data.dataset import DataError, GraspFieldDataset, discover_shards, sample_index
+from defgraspnets.data.grasp_schema import GraspShard
+from defgraspnets.data.splits import ShardInfo, make_split
+from defgraspnets.models.graph import NODE_FINGER
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory):
+    return make_shards(tmp_path_factory.mktemp("grasps"), grasps=5, num_steps=3)
+
+
+@pytest.fixture(scope="module")
+def shards(data_dir):
+    return [GraspShard(p) for p in discover_shards(data_dir)]
+
+
+def _keys(entries, shards, cols=(0, 2)):
+    return {(shards[e[0]].object.name, *(int(e[c]) for c in cols)) for e in entries}
+
+
+def test_sample_matches_shard(shards):
+    ds = GraspFieldDataset(shards, sample_index(shards, np.array([[0, 2, 3]]), [1]), ramp_stride=1)
+    g = ds[0]
+    sh = shards[0]
+    n, v = sh.num_vertices, len(sh.fingers.vertices)
+    assert g.num_nodes == n + 2 * v
+    np.testing.assert_allclose(g.pos[:n].numpy(), sh.object.points, atol=1e-9)
+    np.testing.assert_allclose(
+        g.pos[n:].numpy().reshape(2, v, 3), sh.fingers.vertices_at(sh.finger_contact_pose[3]), atol=1e-9
+    )
+    vm, d = sh.fields(2, 3, 1)
+    np.testing.assert_array_equal(g.stress[:n].numpy(), vm)
+    np.testing.assert_array_equal(g.displacement[:n].numpy(), d)
+    travel = sh.finger_travel[2, 3, 1]
+    np.testing.assert_allclose(
+        g.displacement[n:].numpy(), np.repeat(travel[:, None] * sh.closing_direction[3], v, 0), rtol=1e-6
+    )
+    assert (
+        float(g.force) == pytest.approx(sh.force[2, 3, 1])
+        and float(g.youngs_modulus) == sh.object.youngs_modulus[2]
+    )
+    assert g.sample.tolist() == [[0, 2, 3, 1]]
+    _, d0 = sh.fields(2, 3, 0)
+    np.testing.assert_array_equal(g.prev_displacement[:n].numpy(), d0)
+    assert (g.node_type[n:] == NODE_FINGER).all() and g.contact_edge_index.shape[1] > 0
+
+
+def test_failed_squeezes_are_never_samples(shards):
+    assert shards[0].status[1, 2] != 0
+    with pytest.raises(DataError, match="not solved"):
+        sample_index(shards, np.array([[0, 1, 2]]))
+    split = make_split([ShardInfo.of(s) for s in shards], "unseen_grasps")
+    for part in (split.train, split.val, split.test):
+        assert not any((e[0], e[1], e[2]) == (0, 1, 2) for e in part)
+
+
+def test_nan_in_solved_entry_is_a_clear_error(tmp_path, shards):
+    path = tmp_path / "cuboid_b__shard0of1.h5"
+    path.write_bytes(shards[2].path.read_bytes())
+    with h5py.File(path, "a") as f:
+        f["ramp/von_mises"][0, 0, 0, 5] = np.nan
+    sh = GraspShard(path)
+    ds = GraspFieldDataset([sh], sample_index([sh], np.array([[0, 0, 0]]), [0]))
+    with pytest.raises(DataError, match=r"von_mises\[k=0, g=0, s=0\] contains NaN"):
+        ds[0]
+
+
+def test_generalization_splits(shards):
+    infos = [ShardInfo.of(s) for s in shards]
+    names = {s.object.name for s in shards}
+
+    s1 = make_split(infos, "unseen_grasps", seed=3)
+    train, test = _keys(np.concatenate([s1.train, s1.val]), shards), _keys(s1.test, shards)
+    assert train and test and not train & test  # no grasp on both sides
+    assert {n for n, *_ in test} == names  # every object has unseen grasps
+    assert not _keys(s1.train, shards) & _keys(s1.val, shards)
+
+    s2 = make_split(infos, "unseen_E")
+    e = {
+        p: {(shards[x[0]].object.name, shards[x[0]].object.youngs_modulus[x[1]]) for x in getattr(s2, p)}
+        for p in ("train", "val", "test")
+    }
+    assert not (e["train"] | e["val"]) & e["test"]
+    assert all(len([1 for n2, _ in e["test"] if n2 == n]) == 1 for n in names)  # 1 of 3 moduli (7/3 of 3)
+
+    s3 = make_split(infos, "unseen_objects")
+    assert len([n for n in s3.test_objects if n.startswith("cuboid")]) == 1
+    assert len([n for n in s3.test_objects if n.startswith("slab")]) == 1
+    assert "strawberry" not in s3.test_objects + s3.train_objects
+    assert not set(s3.train_objects) & set(s3.test_objects)
+    assert {shards[x[0]].object.name for x in s3.test} == set(s3.test_objects)
+
+    s4 = make_split(infos, "unseen_real")
+    assert s4.test_objects == ["strawberry"] and "strawberry" not in s4.train_objects
+    g = make_split(infos, "unseen_real", train_objects=["cuboid_a", "slab_a"])
+    assert {shards[x[0]].object.name for x in np.concatenate([g.train, g.val])} == {"cuboid_a", "slab_a"}
+
+    with pytest.raises(ValueError, match="unknown split"):
+        make_split(infos, "unseen_colors")
+    with pytest.raises(ValueError, match=r"\['banana'\] are not in the data"):
+        make_split(infos, "unseen_real", test_objects=["banana"])
+    # splits are reproducible and depend on the seed
+    assert np.array_equal(make_split(infos, "unseen_grasps", seed=3).test, s1.test)
+
+
+def test_datamodule(data_dir):
+    dm = GraspDataModule(
+        str(data_dir), split="unseen_E", eval_steps=[-1], batch_size=3, statistics_samples=10
+    )
+    dm.setup("fit")
+    summary = dm.summary()
+    assert summary["level"] == 2 and summary["samples"]["train"] == 3 * len(dm.split.train)
+    assert summary["samples"]["test"] == len(dm.split.test)  # final step only
+    batch = next(iter(dm.train_dataloader()))
+    assert batch.graph_count == 3 and batch.force.shape == (3,) and batch.sample.shape == (3, 4)
+    assert batch.mesh_edge_index.max() < batch.num_nodes and batch.contact_edge_index.max() < batch.num_nodes
+    assert sum(b.graph_count for b in dm.statistics_dataloader()) == 10
+    assert all(torch.isfinite(b.stress).all() for b in dm.test_dataloader())
+
+
+def test_datamodule_errors(tmp_path, data_dir):
+    with pytest.raises(FileNotFoundError, match="not found"):
+        GraspDataModule(str(tmp_path / "missing")).setup("fit")
+    (tmp_path / "cube__shard0of1.partial.h5").write_bytes(b"")
+    with pytest.raises(FileNotFoundError, match="1 unfinished"):
+        GraspDataModule(str(tmp_path)).setup("fit")
+    with pytest.raises(ValueError, match="data.split"):
+        GraspDataModule(str(data_dir), split="nope")
+    with pytest.raises(ValueError, match="no shard"):
+        GraspDataModule(str(data_dir), objects=["cuboid_a", "pear"]).setup("fit")

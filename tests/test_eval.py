@@ -1,0 +1,118 @@
+"""Evaluation metrics: Kendall tau vs scipy, grouped tau, field errors in physical units, Chamfer distance."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.stats import kendalltau
+
+from defgraspnets.eval.chamfer import chamfer_distance, nearest_training_object, surface_samples
+from defgraspnets.eval.metrics import FieldMetrics, grouped_kendall_tau, kendall_tau
+from defgraspnets.eval.report import markdown_table, write_json
+from defgraspnets.fem.mesh import TetMesh
+from defgraspnets.models.graph import NODE_FINGER, NODE_SURFACE, GraspGraph
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_kendall_tau_matches_scipy(seed):
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(2, 60))
+    x = rng.normal(size=n)
+    y = x * rng.uniform(-1, 1) + rng.normal(size=n)
+    if seed % 2:  # ties in both sequences
+        x, y = np.round(x), np.round(y * 2) / 2
+    want = kendalltau(x, y).statistic
+    got = kendall_tau(x, y)
+    assert (np.isnan(want) and np.isnan(got)) or got == pytest.approx(want, abs=1e-12)
+
+
+def test_kendall_tau_edge_cases():
+    assert kendall_tau([1, 2, 3], [1, 2, 3]) == pytest.approx(1.0)
+    assert kendall_tau([1, 2, 3], [3, 2, 1]) == pytest.approx(-1.0)
+    assert np.isnan(kendall_tau([1, 1, 1], [1, 2, 3])) and np.isnan(kendall_tau([1], [2]))
+    with pytest.raises(ValueError, match="equal lengths"):
+        kendall_tau([1, 2], [1, 2, 3])
+
+
+def test_grouped_kendall_tau_averages_groups():
+    groups = np.array([0, 0, 0, 1, 1, 1, 2])  # group 2 has a single sample: no tau
+    pred = np.array([1, 2, 3, 1, 2, 3, 5.0])
+    true = np.array([1, 2, 3, 3, 2, 1, 5.0])
+    tau, n = grouped_kendall_tau(groups[:, None], pred, true)
+    assert n == 2 and tau == pytest.approx(0.0)
+
+
+def _batch(stress, disp, obj_nodes=3):
+    """Two graphs of obj_nodes object nodes + 1 finger node each."""
+    n = obj_nodes + 1
+    node_type = torch.tensor(([NODE_SURFACE] * obj_nodes + [NODE_FINGER]) * 2)
+    g = GraspGraph(
+        pos=torch.zeros(2 * n, 3),
+        node_type=node_type,
+        stress=stress,
+        displacement=disp,
+        force=torch.tensor([1.0, 2.0]),
+        youngs_modulus=torch.tensor([1e5, 1e5]),
+        sample=torch.tensor([[0, 0, 0, 0], [0, 0, 1, 0]]),
+        object_id=torch.tensor([0, 0]),
+        num_nodes=2 * n,
+    )
+    g.batch = torch.arange(2).repeat_interleave(n)
+    return g
+
+
+def test_field_metrics_in_physical_units():
+    true_s = torch.tensor([1e3, 2e3, 3e3, 0.0, 4e3, 5e3, 6e3, 0.0], dtype=torch.float64)
+    true_d = torch.zeros(8, 3, dtype=torch.float64)
+    true_d[:, 0] = torch.tensor([1, 2, 3, 0, 4, 5, 6, 0]) * 1e-3
+    pred_s = true_s + torch.tensor([100.0, -100, 100, 9e9, 100, -100, 100, 9e9])  # finger nodes ignored
+    pred_d = true_d.clone()
+    pred_d[:, 1] += 1e-3  # |d| error sqrt(x^2 + 1e-6) - x, vector error 1 mm
+    m = FieldMetrics()
+    m.update(pred_s, pred_d, _batch(true_s, true_d))
+    out = m.compute()
+    assert out["samples"] == 2 and out["mae_stress_pa"] == pytest.approx(100.0)
+    assert out["mae_stress_kpa"] == pytest.approx(0.1)
+    assert out["mae_displacement_mm"] == pytest.approx(1.0)
+    x = np.array([1, 2, 3, 4, 5, 6]) * 1e-3
+    assert out["mae_deformation_mm"] == pytest.approx(np.mean(np.sqrt(x**2 + 1e-6) - x) * 1e3)
+    assert (
+        out["tau_s"] == pytest.approx(1.0) and out["tau_d"] == pytest.approx(1.0) and out["tau_groups"] == 1
+    )
+    a = m.arrays()
+    np.testing.assert_allclose(a["mean_stress_true"], [2e3, 5e3])
+    np.testing.assert_allclose(a["max_stress_pred"], [3.1e3, 6.1e3])
+    assert list(m.compute_per_object()) == [0]
+
+
+def test_chamfer_distance():
+    a = np.random.default_rng(0).normal(size=(200, 3))
+    assert chamfer_distance(a, a) == 0.0
+    assert chamfer_distance(a, a + [0.01, 0, 0]) == pytest.approx(0.01, rel=1e-9)
+    box = TetMesh.box((0.04, 0.04, 0.04), (2, 2, 2))
+    big = TetMesh.box((0.05, 0.04, 0.04), (2, 2, 2), origin=(1.0, 0, 0))  # translation is removed
+    s_box = surface_samples(box.points, box.surface_faces, 3000, seed=1)
+    s_box2 = surface_samples(box.points, box.surface_faces, 3000, seed=2)
+    s_big = surface_samples(big.points, big.surface_faces, 3000)
+    assert np.abs(s_box.mean(0)).max() < 1e-3
+    assert chamfer_distance(s_box, s_box2) < 1.5e-3 < chamfer_distance(s_box, s_big) < 5e-3
+    name, d = nearest_training_object(s_box, {"big": s_big, "same": s_box2})
+    assert name == "same" and d == pytest.approx(chamfer_distance(s_box, s_box2))
+
+
+def test_report_writers(tmp_path):
+    rows = [
+        {
+            "split": "unseen_E",
+            "samples": 3,
+            "tau_s": 0.5,
+            "tau_d": float("nan"),
+            "mae_stress_kpa": 1.0,
+            "mae_deformation_mm": 0.25,
+        }
+    ]
+    text = markdown_table(rows)
+    assert text.splitlines()[2] == "| unseen_E | 3 | 0.50 | n/a | 1 | 0.25 |"
+    write_json(tmp_path / "r.json", {"rows": rows})
+    assert '"tau_d": null' in (tmp_path / "r.json").read_text()

@@ -1,0 +1,224 @@
+"""Contact with rigid bodies: uniaxial compression, Hertz, friction, force control, Newton's third law."""
+
+import numpy as np
+import pytest
+from fem_helpers import box_pad, sphere_octant_mesh
+
+from defgraspnets import fem
+
+L = 0.02  # box edge [m]
+
+
+def _squeeze_box(E, force, divisions=(3, 3, 3), **options):
+    mesh = fem.TetMesh.box(size=(L, L, L), divisions=divisions)
+    bottom = fem.RigidBody("bottom", fem.Plane(point=(0, 0, 0), normal=(0, 0, 1)))
+    top = fem.RigidBody(
+        "top", fem.Plane(point=(0, 0, L), normal=(0, 0, -1)), control=fem.Control.force((0, 0, -1))
+    )
+    solver = fem.QuasiStaticSolver(
+        mesh,
+        [bottom, top],
+        fem.Material(E, 0.3, 1000.0),
+        device="cpu",
+        options=fem.SolverOptions(record_tet_stress=True, **options),
+    )
+    return mesh, solver.solve(targets={"top": force})
+
+
+@pytest.mark.parametrize("E", [1e4, 1e9])
+def test_uniaxial_compression_between_frictionless_planes(E):
+    force = 1e-3 * E * L * L  # 0.1 % strain
+    mesh, eq = _squeeze_box(E, force)
+    eq.require_converged()
+    travel = eq.travel["top"][0]
+    assert travel == pytest.approx(force * L / (E * L * L), rel=0.01)
+    # uniform uniaxial stress F/A: sigma_zz everywhere, no other components
+    s = eq.tet_stress[0]
+    assert np.allclose(s[:, 2, 2], -force / L**2, rtol=0.01)
+    assert np.abs(s[:, :2, :2]).max() < 0.01 * force / L**2
+    assert eq.von_mises[0] == pytest.approx(np.full(mesh.num_vertices, force / L**2), rel=0.01)
+    # Newton's third law and the actuator force
+    assert eq.dof_force["top"][0] == pytest.approx(force, rel=1e-6)
+    np.testing.assert_allclose(eq.body_force["top"][0], [0, 0, force], atol=1e-6 * force)
+    np.testing.assert_allclose(eq.body_force["bottom"][0], [0, 0, -force], atol=1e-6 * force)
+    # stated penetration tolerance: (p / E) h / kappa
+    assert eq.max_penetration[0] <= 1.05 * (force / L**2 / E) * mesh.median_surface_edge_length / 1000.0
+
+
+def test_finger_meshes_squeeze_like_planes():
+    """Two triangle-mesh pads sharing one force-controlled dof (a parallel-jaw gripper) = two planes."""
+    E, force = 2e5, 0.08
+    mesh = fem.TetMesh.box(size=(L, L, L), divisions=(3, 3, 3), origin=(-L / 2, -L / 2, -L / 2))
+    v, f = box_pad((0.03, 0.01, 0.03))  # pads larger than the box face
+    left = fem.RigidBody("left", fem.TriangleMesh(v, f), control=fem.Control.force((0, -1, 0), dof="grip"))
+    right = fem.RigidBody("right", fem.TriangleMesh(v, f), control=fem.Control.force((0, 1, 0), dof="grip"))
+    solver = fem.QuasiStaticSolver(mesh, [left, right], fem.Material(E, 0.3, 1000.0), device="cpu")
+    solver.set_body_pose("left", _translation((0, L / 2 + 0.005, 0)))
+    solver.set_body_pose("right", _translation((0, -L / 2 - 0.005, 0)))
+    eq = solver.solve(targets={"grip": 2 * force})  # total grasp force: the sum over both fingers
+    eq.require_converged()
+    np.testing.assert_allclose(eq.body_force["left"][0], [0, force, 0], rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(eq.body_force["right"][0], [0, -force, 0], rtol=1e-6, atol=1e-9)
+    # each finger closes by half of the squeeze
+    assert eq.travel["grip"][0] == pytest.approx(force * L / (E * L * L) / 2, rel=0.01)
+    # symmetric: the object does not move sideways
+    assert abs(eq.displacement[0][:, 1].mean()) < 1e-3 * eq.travel["grip"][0]
+
+
+def _translation(t):
+    T = np.eye(4)
+    T[:3, 3] = t
+    return T
+
+
+def test_hertz_sphere_between_planes():
+    """Sphere (R = 10 mm, E = 100 kPa) between rigid planes, modelled as one octant with symmetry planes.
+
+    Mesh: edges of ~0.06 mm at the pole growing by 0.08 per mm (5k vertices); the contact radius spans
+    10-30 edges. Per contact, F = 4/3 E* sqrt(R) delta^1.5 within 5 % and the contact radius
+    a = (3 F R / 4 E*)^(1/3) within 5 %. A fit delta = (F/K)^(2/3) - c F, whose linear term is the finite
+    sphere's far-field compliance (Hertz's approach is that of infinitely distant points), gives K
+    within 3 % of 4/3 E* sqrt(R).
+    """
+    from scipy.optimize import least_squares
+
+    R, E, nu = 0.01, 1e5, 0.3
+    mesh = sphere_octant_mesh(R, pole_size=3e-5, far_size=1.5e-3, grading=0.08)
+    p = mesh.points
+    symmetry = np.abs(p) < 1e-9  # u_x = 0 on x = 0, u_y = 0 on y = 0, u_z = 0 on z = 0
+    top = fem.RigidBody(
+        "top", fem.Plane(point=(0, 0, R), normal=(0, 0, -1)), control=fem.Control.force((0, 0, -1))
+    )
+    solver = fem.QuasiStaticSolver(mesh, [top], fem.Material(E, nu, 1000.0), fixed=symmetry, device="cpu")
+    e_star = E / (1 - nu**2)
+    k_hertz = 4 / 3 * e_star * np.sqrt(R)
+    forces, deltas = [], []
+    for d_over_r in (0.001, 0.002, 0.004, 0.008):
+        force = k_hertz * (d_over_r * R) ** 1.5
+        eq = solver.solve(targets={"top": force / 4})  # the octant carries a quarter of the load
+        eq.require_converged()
+        delta = eq.travel["top"][0]
+        assert force / (k_hertz * delta**1.5) == pytest.approx(1.0, abs=0.05)
+        touching = mesh.surface_vertices[eq.contact_normal_force["top"][0] > 0]
+        a_fem = np.hypot(p[touching, 0], p[touching, 1]).max()
+        assert a_fem == pytest.approx((3 * force * R / (4 * e_star)) ** (1 / 3), rel=0.05)
+        forces.append(force)
+        deltas.append(delta)
+    forces, deltas = np.array(forces), np.array(deltas)
+    fit = least_squares(
+        lambda x: (
+            ((forces / (x[0] * k_hertz)) ** (2 / 3) - x[1] * forces / (k_hertz / np.sqrt(R)) - deltas)
+            / deltas
+        ),
+        x0=[1.0, 0.0],
+    )
+    assert fit.x[0] == pytest.approx(1.0, abs=0.03)
+
+
+def _pressed_block(mu, normal_force=1.0, E=1e5):
+    mesh = fem.TetMesh.box(size=(L, L, L), divisions=(3, 3, 3), origin=(-L / 2, -L / 2, 0))
+    floor = fem.RigidBody("floor", fem.Plane(point=(0, 0, 0), normal=(0, 0, 1)), friction=mu)
+    press = fem.RigidBody(
+        "press", fem.Plane(point=(0, 0, L), normal=(0, 0, -1)), control=fem.Control.force((0, 0, -1))
+    )
+    solver = fem.QuasiStaticSolver(mesh, [floor, press], fem.Material(E, 0.3, 1000.0), device="cpu")
+    eq = solver.solve(targets={"press": normal_force})
+    eq.require_converged()
+    return mesh, solver
+
+
+@pytest.mark.parametrize("ratio", [0.5, 0.9])
+def test_friction_holds_a_tangential_load_below_mu_n(ratio):
+    mu, normal = 0.5, 1.0
+    mesh, solver = _pressed_block(mu, normal)
+    mass = mesh.mass(1000.0)
+    tangential = ratio * mu * normal
+    eq = solver.solve(body_load=fem.BodyLoad(gravity=(tangential / mass, 0, 0)))  # uniform push along +x
+    eq.require_converged()
+    f_floor = eq.body_force["floor"][0]
+    assert f_floor[0] == pytest.approx(tangential, rel=1e-5)  # friction carries the whole load
+    assert f_floor[2] == pytest.approx(-normal, rel=1e-5)
+    # no sliding: the contact patch moves far less than the block's elastic shear T L / (G A)
+    contact = eq.contact_normal_force["floor"][0] > 0
+    slip = eq.displacement[0][mesh.surface_vertices[contact], 0]
+    shear = tangential * L / (solver.materials[0].shear_modulus * L * L)
+    assert np.abs(slip).max() < 0.2 * shear
+    sticking = eq.contact_sticking["floor"][0][contact].mean()
+    assert sticking > (0.8 if ratio < 0.6 else 0.3)  # partial slip spreads from the edges near mu N
+    # every contact force obeys Coulomb: |f_t| <= mu f_n
+    ft = np.linalg.norm(eq.contact_friction_force["floor"][0], axis=-1)
+    fn = eq.contact_normal_force["floor"][0]
+    assert np.all(ft <= mu * fn * (1 + 1e-9) + 1e-15)
+
+
+def test_friction_slips_above_mu_n_and_reports_the_load_at_slip():
+    mu, normal = 0.5, 1.0
+    mesh, solver = _pressed_block(mu, normal)
+    mass = mesh.mass(1000.0)
+    tangential = 2.0 * mu * normal
+    eq = solver.solve(body_load=fem.BodyLoad(gravity=(tangential / mass, 0, 0)))
+    assert eq.status[0] == fem.SolveStatus.ESCAPED
+    # the block held up to the Coulomb limit mu N: half of the requested push
+    assert eq.load_fraction[0] == pytest.approx(mu * normal / tangential, abs=0.02)
+    with pytest.raises(RuntimeError, match="ESCAPED"):
+        eq.require_converged()
+    # flagged problems stay flagged until reset
+    again = solver.solve(body_load=fem.BodyLoad())
+    assert again.status[0] == fem.SolveStatus.ESCAPED
+    solver.reset()
+    assert solver.solve().status[0] == fem.SolveStatus.CONVERGED
+
+
+def test_gravity_on_a_block_resting_on_a_frictional_floor():
+    mesh = fem.TetMesh.box(size=(L, L, L), divisions=(3, 3, 3))
+    floor = fem.RigidBody("floor", fem.Plane(point=(0, 0, 0), normal=(0, 0, 1)), friction=0.5)
+    solver = fem.QuasiStaticSolver(mesh, [floor], fem.Material(2e4, 0.3, 1000.0), device="cpu")
+    g = fem.STANDARD_GRAVITY
+    eq = solver.solve(body_load=fem.BodyLoad(gravity=(0, 0, -g)))
+    eq.require_converged()
+    weight = mesh.mass(1000.0) * g
+    np.testing.assert_allclose(eq.body_force["floor"][0], [0, 0, -weight], rtol=1e-6, atol=1e-9 * weight)
+    # the block sags: the top moves down more than the bottom, by about rho g L^2 / (2 E)
+    top = mesh.points[:, 2] > L - 1e-12
+    sag = -eq.displacement[0][top, 2].mean() + eq.displacement[0][~top, 2].min()
+    assert sag > 0
+
+
+def test_sphere_indenter_on_a_clamped_block_balances_forces():
+    mesh = fem.TetMesh.box(size=(L, L, L / 2), divisions=(6, 6, 3), origin=(-L / 2, -L / 2, -L / 2))
+    bottom = mesh.points[:, 2] < -L / 2 + 1e-12
+    r = 0.004
+    sphere = fem.RigidBody(
+        "ball", fem.Sphere(radius=r, center=(0, 0, r)), control=fem.Control.displacement((0, 0, -1))
+    )
+    solver = fem.QuasiStaticSolver(
+        mesh, [sphere], fem.Material(1e5, 0.3, 1000.0), fixed=np.nonzero(bottom)[0], device="cpu"
+    )
+    previous = 0.0
+    for depth in (2e-4, 4e-4, 8e-4):
+        eq = solver.solve(targets={"ball": depth})
+        eq.require_converged()
+        f = eq.body_force["ball"][0]
+        assert f[2] > previous  # force grows with depth
+        assert np.hypot(f[0], f[1]) < 1e-6 * f[2]  # axisymmetric: no lateral force
+        # equilibrium of the object: support reactions balance the indenter
+        np.testing.assert_allclose(eq.reaction_force[0].sum(axis=0), f, rtol=1e-6, atol=1e-9 * f[2])
+        previous = f[2]
+
+
+def test_capsule_indenter_pushes_along_its_normal():
+    mesh = fem.TetMesh.box(size=(L, L, L / 2), divisions=(6, 6, 3), origin=(-L / 2, -L / 2, -L / 2))
+    bottom = np.nonzero(mesh.points[:, 2] < -L / 2 + 1e-12)[0]
+    r = 0.003
+    capsule = fem.RigidBody(
+        "arm",
+        fem.Capsule(radius=r, half_length=0.006, center=(0, 0, r), direction=(1, 0, 0)),
+        control=fem.Control.force((0, 0, -1)),
+    )
+    solver = fem.QuasiStaticSolver(
+        mesh, [capsule], fem.Material(1e5, 0.3, 1000.0), fixed=bottom, device="cpu"
+    )
+    eq = solver.solve(targets={"arm": 0.5})
+    eq.require_converged()
+    np.testing.assert_allclose(eq.body_force["arm"][0], [0, 0, 0.5], atol=1e-6)
+    assert eq.travel["arm"][0] > 0

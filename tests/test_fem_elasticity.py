@@ -1,0 +1,172 @@
+"""Fixed co-rotated elasticity: derivatives, patch test, rigid motions (thesis ch. 6 engine)."""
+
+import numpy as np
+import pytest
+import warp as wp
+from fem_helpers import corotated_cauchy_stress, linear_elastic_stress
+from scipy.spatial.transform import Rotation
+
+from defgraspnets import fem
+from defgraspnets.fem import elasticity as ek
+
+E, NU = 2e5, 0.3
+MAT = fem.Material(E, NU, 1000.0)
+
+
+def _element(x, rest, mu, lam):
+    """Energy, gradient (12,) and Hessian (12, 12) of one tet from the Warp kernels."""
+    m = fem.TetMesh(rest, [[0, 1, 2, 3]])
+    args = dict(device="cpu")
+    tets = wp.array(m.tets.astype(np.int32), dtype=wp.int32, **args)
+    binv = wp.array(m.rest_shape_inverse, dtype=wp.mat33d, **args)
+    vol = wp.array(m.volumes, dtype=wp.float64, **args)
+    mu_a, lam_a = wp.array([mu], dtype=wp.float64, **args), wp.array([lam], dtype=wp.float64, **args)
+    act = wp.array([1], dtype=wp.int32, **args)
+    pos = wp.array(x, dtype=wp.vec3d, **args)
+    e = wp.zeros(1, dtype=wp.float64, **args)
+    wp.launch(ek.elastic_energy_kernel, (1, 1), [pos, tets, binv, vol, mu_a, lam_a, 4, act, e], **args)
+    g = wp.zeros(4, dtype=wp.vec3d, **args)
+    H = wp.zeros(16, dtype=wp.mat33d, **args)
+    fs = wp.zeros(1, dtype=wp.float64, **args)
+    blocks = wp.array(np.arange(16, dtype=np.int32).reshape(1, 16), dtype=wp.int32, **args)
+    wp.launch(
+        ek.elastic_gradient_hessian_kernel,
+        (1, 1),
+        [pos, tets, binv, vol, mu_a, lam_a, blocks, 4, 4, 16, act, g, fs, H],
+        **args,
+    )
+    return (
+        e.numpy()[0],
+        g.numpy().ravel(),
+        H.numpy().reshape(4, 4, 3, 3).transpose(0, 2, 1, 3).reshape(12, 12),
+    )
+
+
+REST = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]) * 0.01
+
+
+def test_element_gradient_and_hessian_match_finite_differences():
+    rng = np.random.default_rng(3)
+    F = 1.2 * np.eye(3) + 0.05 * rng.normal(size=(3, 3))  # stretched: no eigenvalue is clamped
+    x = REST @ F.T + 0.002
+    _, g, H = _element(x, REST, MAT.shear_modulus, MAT.lame_lambda)
+    h = 1e-8
+    g_fd, H_fd = np.zeros(12), np.zeros((12, 12))
+    for i in range(12):
+        xp, xm = x.ravel().copy(), x.ravel().copy()
+        xp[i] += h
+        xm[i] -= h
+        ep, gp, _ = _element(xp.reshape(4, 3), REST, MAT.shear_modulus, MAT.lame_lambda)
+        em, gm, _ = _element(xm.reshape(4, 3), REST, MAT.shear_modulus, MAT.lame_lambda)
+        g_fd[i] = (ep - em) / (2 * h)
+        H_fd[:, i] = (gp - gm) / (2 * h)
+    assert np.abs(g - g_fd).max() < 1e-6 * np.abs(g).max()
+    assert np.abs(H - H_fd).max() < 1e-6 * np.abs(H).max()
+
+
+def test_element_hessian_is_psd_when_compressed_and_inverted():
+    for F in (np.diag([0.3, 0.4, 1.0]), np.diag([1.0, 1.0, -0.2]), np.diag([0.05, 2.0, 1.5])):
+        _, _, H = _element(REST @ F.T, REST, MAT.shear_modulus, MAT.lame_lambda)
+        assert np.linalg.eigvalsh(H).min() > -1e-9 * np.abs(H).max()
+
+
+def test_element_forces_and_stiffness_at_rest_are_those_of_linear_elasticity():
+    e, g, H = _element(REST, REST, MAT.shear_modulus, MAT.lame_lambda)
+    assert abs(e) < 1e-25 and np.abs(g).max() < 1e-12
+    # K u for an affine u = G X equals the linear-elastic nodal forces V sigma beta_a
+    G = np.array([[1e-3, 2e-4, 0], [0, -5e-4, 3e-4], [1e-4, 0, 2e-4]])
+    u = (REST @ G.T).ravel()
+    sigma = linear_elastic_stress(G, E, NU)
+    binv = np.linalg.inv((REST[1:] - REST[0]).T)
+    betas = np.vstack([-binv.sum(axis=0), binv])
+    f = np.concatenate([(sigma @ b) / 6e6 for b in betas])
+    np.testing.assert_allclose(H @ u, f, rtol=1e-9, atol=1e-9 * np.abs(f).max())
+    # six rigid-body zero modes
+    assert np.sum(np.abs(np.linalg.eigvalsh(H)) < 1e-9 * np.abs(H).max()) == 6
+
+
+def _patch_solve(F_affine, translation=(0.0, 0.0, 0.0)):
+    """Box whose whole boundary follows x = F X + c; returns (solver mesh, equilibrium)."""
+    mesh = fem.TetMesh.box(size=(0.02, 0.03, 0.025), divisions=(3, 3, 3))
+    target = mesh.points @ F_affine.T + translation - mesh.points
+    solver = fem.QuasiStaticSolver(
+        mesh,
+        [],
+        MAT,
+        fixed=mesh.surface_vertices,
+        device="cpu",
+        options=fem.SolverOptions(record_tet_stress=True),
+    )
+    eq = solver.solve(prescribed_displacement=np.where(mesh.is_surface_vertex[:, None], target, 0.0))
+    eq.require_converged()
+    return mesh, eq, target
+
+
+def test_patch_test_small_strain_matches_hookes_law():
+    G = np.array([[2e-4, 1e-4, -5e-5], [3e-5, -1e-4, 2e-4], [0.0, 1e-4, 3e-4]])
+    mesh, eq, target = _patch_solve(np.eye(3) + G)
+    interior = ~mesh.is_surface_vertex
+    assert interior.sum() == 8
+    np.testing.assert_allclose(eq.displacement[0, interior], target[interior], atol=1e-12)
+    expected = linear_elastic_stress(G, E, NU)
+    err = np.abs(eq.tet_stress[0] - expected).max() / np.abs(expected).max()
+    assert err < 2e-3  # geometric nonlinearity is O(|G|)
+    # the volume-weighted vertex stress is the same constant
+    assert np.abs(eq.vertex_stress[0] - expected).max() / np.abs(expected).max() < 2e-3
+
+
+def test_patch_test_large_strain_gives_constant_exact_stress():
+    F = np.array([[1.3, 0.2, 0.0], [-0.1, 0.8, 0.15], [0.05, 0.0, 1.1]])
+    mesh, eq, target = _patch_solve(F)
+    interior = ~mesh.is_surface_vertex
+    np.testing.assert_allclose(eq.displacement[0, interior], target[interior], atol=1e-11)
+    expected = corotated_cauchy_stress(F, MAT.shear_modulus, MAT.lame_lambda)
+    np.testing.assert_allclose(
+        eq.tet_stress[0],
+        np.broadcast_to(expected, eq.tet_stress[0].shape),
+        atol=1e-9 * np.abs(expected).max(),
+    )
+    # strain energy = V Psi(F)
+    s = np.linalg.svd(F, compute_uv=False)
+    psi = MAT.shear_modulus * np.sum((s - 1) ** 2) + 0.5 * MAT.lame_lambda * (np.prod(s) - 1) ** 2
+    assert eq.strain_energy[0] == pytest.approx(mesh.volume * psi, rel=1e-10)
+
+
+def test_rigidly_moved_mesh_has_zero_stress():
+    """Every vertex prescribed to R X + c (a 179 degree rotation): stress and energy vanish."""
+    R = Rotation.from_rotvec(np.deg2rad(179.0) * np.array([1.0, 2.0, -0.5]) / np.sqrt(5.25)).as_matrix()
+    mesh = fem.TetMesh.box(size=(0.02, 0.03, 0.025), divisions=(3, 3, 3))
+    target = mesh.points @ R.T + [0.1, -0.2, 0.05] - mesh.points
+    solver = fem.QuasiStaticSolver(
+        mesh,
+        [],
+        MAT,
+        fixed=np.arange(mesh.num_vertices),
+        device="cpu",
+        options=fem.SolverOptions(record_tet_stress=True),
+    )
+    eq = solver.solve(prescribed_displacement=target)
+    eq.require_converged()
+    assert np.abs(eq.tet_stress[0]).max() < 1e-9 * E
+    assert eq.strain_energy[0] < 1e-20
+
+
+def test_large_rotation_of_the_boundary_leaves_the_interior_rigid_and_unstressed():
+    """Boundary rotated in 12 increments of 15 degrees (180 in all); free interior vertices follow rigidly."""
+    axis = np.array([1.0, 2.0, -0.5]) / np.sqrt(5.25)
+    mesh = fem.TetMesh.box(size=(0.02, 0.03, 0.025), divisions=(3, 3, 3))
+    solver = fem.QuasiStaticSolver(
+        mesh,
+        [],
+        MAT,
+        fixed=mesh.surface_vertices,
+        device="cpu",
+        options=fem.SolverOptions(record_tet_stress=True),
+    )
+    for step in range(1, 13):
+        R = Rotation.from_rotvec(np.deg2rad(15.0 * step) * axis).as_matrix()
+        target = mesh.points @ R.T - mesh.points
+        eq = solver.solve(prescribed_displacement=np.where(mesh.is_surface_vertex[:, None], target, 0.0))
+        eq.require_converged()
+    np.testing.assert_allclose(eq.displacement[0], target, atol=1e-10)
+    assert np.abs(eq.tet_stress[0]).max() < 1e-6 * E

@@ -1,0 +1,237 @@
+"""Solver behaviour: batching, linear solvers, devices, reference FEM, bad input."""
+
+import numpy as np
+import pytest
+from fem_helpers import box_pad
+
+from defgraspnets import fem
+
+L = 0.02
+
+
+def _grasp_problem(batch, device="cpu", linear_solver="auto"):
+    """A box squeezed by two finger pads (shared force dof) with friction, rotated per problem."""
+    mesh = fem.TetMesh.box(
+        size=(L, 0.75 * L, 1.25 * L), divisions=(4, 4, 4), origin=(-L / 2, -0.375 * L, -0.625 * L)
+    )
+    v, f = box_pad((0.012, 0.008, 0.012))
+    left = fem.RigidBody(
+        "left", fem.TriangleMesh(v, f), control=fem.Control.force((0, -1, 0), dof="grip"), friction=0.7
+    )
+    right = fem.RigidBody(
+        "right", fem.TriangleMesh(v, f), control=fem.Control.force((0, 1, 0), dof="grip"), friction=0.7
+    )
+    mats = [fem.Material(E, 0.3, 1000.0) for E in np.geomspace(2e4, 2e6, batch)]
+    solver = fem.QuasiStaticSolver(
+        mesh,
+        [left, right],
+        mats,
+        batch_size=batch,
+        device=device,
+        options=fem.SolverOptions(linear_solver=linear_solver),
+    )
+    poses_l, poses_r = [], []
+    for b in range(batch):
+        angle = 0.3 * b
+        c, s = np.cos(angle), np.sin(angle)
+        R = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])  # grasp rotated about the closing axis
+        offset = np.array([0.001 * b, 0, -0.001 * b])
+        for sign, out in ((1, poses_l), (-1, poses_r)):
+            T = np.eye(4)
+            T[:3, :3] = R
+            T[:3, 3] = offset + [0, sign * (0.375 * L + 0.004), 0]
+            out.append(T)
+    solver.set_body_pose("left", np.array(poses_l))
+    solver.set_body_pose("right", np.array(poses_r))
+    return mesh, solver
+
+
+def _ramp(solver, forces, steps=3):
+    return solver.ramp(steps, targets={"grip": forces})[-1]
+
+
+def test_batched_solves_equal_single_solves():
+    forces = np.array([0.5, 1.0, 2.0])
+    mesh, batched = _grasp_problem(3)
+    eq = _ramp(batched, forces)
+    eq.require_converged()
+    for b in range(3):
+        _, single = _grasp_problem(3)
+        # same problem alone: restrict the batch to one entry by giving the others zero load
+        eq1 = _ramp(single, np.where(np.arange(3) == b, forces, 0.0))
+        np.testing.assert_allclose(eq.displacement[b], eq1.displacement[b], atol=1e-9 * L)
+        np.testing.assert_allclose(
+            eq.von_mises[b], eq1.von_mises[b], rtol=1e-6, atol=1e-9 * eq.von_mises[b].max()
+        )
+    # the two fingers share the grasp force; the object is in equilibrium
+    for b in range(3):
+        np.testing.assert_allclose(
+            eq.body_force["left"][b] + eq.body_force["right"][b], 0, atol=1e-7 * forces[b]
+        )
+        assert eq.dof_force["grip"][b] == pytest.approx(forces[b], rel=1e-6)
+    # stiffer material deforms less under a larger force here
+    assert eq.deformation()[0].max() > eq.deformation()[2].max()
+
+
+def test_linear_solvers_agree():
+    forces = np.array([1.0, 1.5])
+    results = {}
+    for linear in ("amg", "direct", "cg"):
+        _, solver = _grasp_problem(2, linear_solver=linear)
+        eq = _ramp(solver, forces, steps=2)
+        eq.require_converged()
+        results[linear] = eq
+    for other in ("direct", "cg"):
+        np.testing.assert_allclose(results[other].displacement, results["amg"].displacement, atol=1e-8 * L)
+
+
+def test_squeeze_is_mirror_symmetric_and_grows_with_force():
+    mesh = fem.TetMesh.box(size=(L, L, L), divisions=(4, 4, 4), origin=(-L / 2, -L / 2, -L / 2))
+    v, f = box_pad((0.012, 0.008, 0.012))
+    left = fem.RigidBody(
+        "left", fem.TriangleMesh(v, f), control=fem.Control.force((0, -1, 0), dof="grip"), friction=0.7
+    )
+    right = fem.RigidBody(
+        "right", fem.TriangleMesh(v, f), control=fem.Control.force((0, 1, 0), dof="grip"), friction=0.7
+    )
+    solver = fem.QuasiStaticSolver(mesh, [left, right], fem.Material(5e4, 0.3, 1000.0), device="cpu")
+    for name, y in (("left", L / 2 + 0.004), ("right", -L / 2 - 0.004)):
+        T = np.eye(4)
+        T[1, 3] = y
+        solver.set_body_pose(name, T)
+    steps = solver.ramp(4, targets={"grip": 4.0})
+    for eq in steps:
+        eq.require_converged()
+    peak = [eq.von_mises[0].max() for eq in steps]
+    squeeze = [eq.travel["grip"][0] for eq in steps]
+    assert np.all(np.diff(peak) > 0) and np.all(np.diff(squeeze) > 0)
+    # mirror y -> -y maps the field onto itself
+    eq = steps[-1]
+    p = mesh.points
+    mirror = np.array([np.argmin(np.linalg.norm(p - q * [1, -1, 1], axis=1)) for q in p])
+    np.testing.assert_allclose(eq.von_mises[0][mirror], eq.von_mises[0], rtol=1e-5, atol=1e-6 * max(peak))
+    np.testing.assert_allclose(
+        eq.displacement[0][mirror], eq.displacement[0] * [1, -1, 1], atol=1e-6 * squeeze[-1]
+    )
+
+
+def test_agrees_with_scikit_fem_linear_elasticity():
+    """Cantilever under its own weight (small strain): same mesh, P1 elements, L2 difference < 1 %."""
+    import skfem
+    from skfem.models.elasticity import lame_parameters, linear_elasticity
+
+    E, nu, rho, g = 1e6, 0.3, 1000.0, 2.0
+    mesh = fem.TetMesh.box(size=(0.08, 0.02, 0.02), divisions=(12, 3, 3))
+    clamped = np.nonzero(mesh.points[:, 0] < 1e-12)[0]
+    solver = fem.QuasiStaticSolver(mesh, [], fem.Material(E, nu, rho), fixed=clamped, device="cpu")
+    eq = solver.solve(body_load=fem.BodyLoad(gravity=(0, 0, -g)))
+    eq.require_converged()
+
+    m = skfem.MeshTet(mesh.points.T.copy(), mesh.tets.T.copy())
+    basis = skfem.Basis(m, skfem.ElementVector(skfem.ElementTetP1()))
+    K = skfem.asm(linear_elasticity(*lame_parameters(E, nu)), basis)
+
+    @skfem.LinearForm
+    def weight(v, w):
+        return -rho * g * v[2]
+
+    f = skfem.asm(weight, basis)
+    dofs = basis.get_dofs(lambda x: x[0] < 1e-12)
+    u = skfem.solve(*skfem.condense(K, f, D=dofs))[basis.nodal_dofs.T]  # (N, 3)
+    ours = eq.displacement[0]
+    rel = np.linalg.norm(ours - u) / np.linalg.norm(u)
+    assert rel < 0.01
+    assert -ours[:, 2].min() > 1e-6  # the load did something measurable
+
+
+# ------------------------------------------------------------------ bad input
+def test_bad_material_and_options():
+    with pytest.raises(fem.MaterialError, match="poisson_ratio"):
+        fem.Material(1e5, 0.5)
+    with pytest.raises(fem.MaterialError, match="youngs_modulus"):
+        fem.Material(float("nan"))
+    with pytest.raises(fem.MaterialError, match="density"):
+        fem.Material(1e5, 0.3, -1.0)
+    with pytest.raises(ValueError, match="linear_solver"):
+        fem.SolverOptions(linear_solver="magic")
+
+
+def test_bad_bodies_and_targets():
+    mesh = fem.TetMesh.box(size=(L, L, L), divisions=(2, 2, 2))
+    v, f = box_pad()
+    with pytest.raises(fem.BodyError, match="closed"):
+        fem.TriangleMesh(v, f[:-1])
+    with pytest.raises(fem.BodyError, match="outward"):
+        fem.TriangleMesh(v, f[:, ::-1])
+    with pytest.raises(fem.BodyError, match="radius"):
+        fem.Sphere(radius=-1.0)
+    with pytest.raises(fem.BodyError, match="mode"):
+        fem.Control("pull")
+    with pytest.raises(fem.BodyError, match="friction"):
+        fem.RigidBody("p", fem.Plane(), friction=-0.1)
+    top = fem.RigidBody(
+        "top", fem.Plane(point=(0, 0, L), normal=(0, 0, -1)), control=fem.Control.force((0, 0, -1))
+    )
+    with pytest.raises(fem.BodyError, match="unique"):
+        fem.QuasiStaticSolver(mesh, [top, top], device="cpu")
+    solver = fem.QuasiStaticSolver(mesh, [top], device="cpu")
+    with pytest.raises(KeyError, match="unknown dof 'grip'"):
+        solver.solve(targets={"grip": 1.0})
+    with pytest.raises(ValueError, match="finite"):
+        solver.solve(targets={"top": float("nan")})
+    with pytest.raises(KeyError, match="no rigid body named"):
+        solver.set_body_pose("finger", np.eye(4))
+    bad_pose = np.eye(4)
+    bad_pose[0, 0] = 2.0
+    with pytest.raises(fem.BodyError, match="rotation"):
+        solver.set_body_pose("top", bad_pose)
+    with pytest.raises(ValueError, match="BodyLoad.gravity"):
+        solver.solve(body_load=fem.BodyLoad(gravity=(0, 0, float("inf"))))
+    with pytest.raises(ValueError, match="fixed mask"):
+        fem.QuasiStaticSolver(mesh, [], fixed=np.zeros((3, 3), bool), device="cpu")
+    with pytest.raises(TypeError, match="TetMesh"):
+        fem.QuasiStaticSolver(mesh.points, [], device="cpu")
+
+
+@pytest.mark.gpu
+def test_cuda_matches_cpu():
+    forces = np.array([0.5, 1.5])
+    _, cpu = _grasp_problem(2, device="cpu")
+    _, gpu = _grasp_problem(2, device="cuda")
+    a, b = _ramp(cpu, forces), _ramp(gpu, forces)
+    a.require_converged()
+    b.require_converged()
+    np.testing.assert_allclose(b.displacement, a.displacement, atol=1e-7 * L)
+    np.testing.assert_allclose(b.von_mises, a.von_mises, rtol=1e-4, atol=1e-6 * a.von_mises.max())
+
+
+def test_dalembert_loads_per_problem():
+    """Per-problem frame accelerations: the support reaction balances m (g - a) and the moment of alpha."""
+    mesh = fem.TetMesh.box(size=(L, L, L), divisions=(2, 2, 2), origin=(-L / 2, -L / 2, -L / 2))
+    clamped = np.nonzero(mesh.points[:, 2] < -L / 2 + 1e-12)[0]
+    mats = [fem.Material(1e6, 0.3, rho) for rho in (500.0, 1000.0, 2000.0)]
+    solver = fem.QuasiStaticSolver(mesh, [], mats, batch_size=3, fixed=clamped, device="cpu")
+    g = np.array([0.0, 0.0, -9.81])
+    acc = np.array([[3.0, 0.0, 0.0], [0.0, -5.0, 2.0], [1.0, 1.0, 1.0]])
+    alpha = np.array([[0.0, 0.0, 100.0], [0.0, 0.0, 0.0], [50.0, 0.0, 0.0]])
+    eq = solver.solve(body_load=fem.BodyLoad(gravity=g, linear_acceleration=acc, angular_acceleration=alpha))
+    eq.require_converged()
+    for b, rho in enumerate((500.0, 1000.0, 2000.0)):
+        m = mesh.mass(rho)
+        # the support carries the whole inertial + gravity load (the centroid is the rotation centre)
+        np.testing.assert_allclose(
+            eq.reaction_force[b].sum(axis=0), -m * (g - acc[b]), rtol=1e-6, atol=1e-9 * m * 9.81
+        )
+        # moment balance in the deformed configuration (elastic forces carry no net moment): exact
+        x = mesh.points + eq.displacement[b]
+        f = fem.BodyLoad(gravity=g, linear_acceleration=acc[b], angular_acceleration=alpha[b]).nodal_forces(
+            mesh.points, mesh.vertex_masses(rho), 1
+        )[0]
+        scale = m * 9.81 * L
+        np.testing.assert_allclose(np.cross(x, eq.reaction_force[b] + f).sum(axis=0), 0.0, atol=1e-7 * scale)
+        # and to first order the support supplies I alpha about the centroid
+        r = mesh.points - mesh.center_of_mass()
+        masses = mesh.vertex_masses(rho)
+        inertia = sum(mi * (ri @ ri * np.eye(3) - np.outer(ri, ri)) for mi, ri in zip(masses, r))
+        moment = np.cross(r, eq.reaction_force[b]).sum(axis=0)
+        np.testing.assert_allclose(moment, inertia @ alpha[b], atol=1e-3 * scale)

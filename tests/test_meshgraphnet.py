@@ -1,0 +1,150 @@
+"""DefGraspNet: batching invariance, overfitting, gradients w.r.t. finger positions, ablations."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from test_data_synthetic import make_shards
+from torch_geometric.loader import DataLoader
+
+from defgraspnets.data.dataset import GraspFieldDataset, sample_index
+from defgraspnets.data.grasp_schema import GraspShard
+from defgraspnets.models.graph import NODE_FINGER
+from defgraspnets.models.meshgraphnet import DefGraspNet
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_torch_thread():
+    # tiny graphs: intra-op threads only add synchronization (and stall badly on a busy 2-core machine)
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def shards(tmp_path_factory):
+    d = make_shards(tmp_path_factory.mktemp("grasps"), grasps=2, num_steps=3, with_real=False)
+    return [GraspShard(p) for p in sorted(d.glob("*.h5"))]
+
+
+def _dataset(shards, entries, steps=(-1,), ramp_stride=None):
+    return GraspFieldDataset(
+        shards, sample_index(shards, np.asarray(entries), list(steps)), ramp_stride=ramp_stride
+    )
+
+
+def _net(ds, dtype=torch.float32, **kw):
+    torch.manual_seed(0)
+    net = DefGraspNet(**{"latent": 16, "num_blocks": 2, **kw})
+    net.fit_normalizers(DataLoader(ds, batch_size=4), progress=False)
+    return net.to(dtype).eval()
+
+
+def test_batch_of_two_equals_two_single_passes(shards):
+    ds = _dataset(shards, [[0, 0, 0], [2, 2, 1]])  # two different objects, moduli, grasps
+    net = _net(ds, torch.float64)
+    batch = next(iter(DataLoader(ds, batch_size=2))).to_dtype(torch.float64)
+    with torch.no_grad():
+        joint = net(batch)
+        s_joint, d_joint = net.fields(batch)
+        n0 = ds[0].num_nodes
+        for i in range(2):
+            single = next(iter(DataLoader([ds[i]], batch_size=1))).to_dtype(torch.float64)
+            sl = slice(0, n0) if i == 0 else slice(n0, None)
+            torch.testing.assert_close(net(single), joint[sl], rtol=1e-10, atol=1e-10)
+            s, d = net.fields(single)
+            torch.testing.assert_close(s, s_joint[sl], rtol=1e-10, atol=1e-6)
+            torch.testing.assert_close(d, d_joint[sl], rtol=1e-10, atol=1e-15)
+
+
+def test_overfits_tiny_dataset(shards):
+    ds = _dataset(shards, [[0, 0, 0], [0, 1, 1], [0, 2, 0], [0, 2, 1]])
+    net = _net(ds, latent=32).train()
+    batch = next(iter(DataLoader(ds, batch_size=4)))
+    target = net.normalized_targets(batch)
+    mask = batch.node_type != NODE_FINGER
+    opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(300):
+        opt.zero_grad()
+        loss = (net(batch)[mask] - target[mask]).square().mean()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert losses[0] / min(losses[-10:]) >= 100, (losses[0], losses[-10:])
+
+
+def test_gradient_wrt_finger_positions_matches_finite_differences(shards):
+    ds = _dataset(shards, [[0, 0, 0], [0, 1, 1]])
+    net = _net(ds, torch.float64, latent=8)
+    g = ds[0].to_dtype(torch.float64)
+    finger = (g.node_type == NODE_FINGER).nonzero().squeeze(1)
+    touching = torch.unique(g.contact_edge_index[1][torch.isin(g.contact_edge_index[1], finger)])
+
+    def objective(pos):  # a planning objective Q: mean stress [kPa] + mean deformation [mm]
+        g.pos = pos
+        s, d = net.fields(g)
+        obj = g.node_type != NODE_FINGER
+        return s[obj].mean() / 1e3 + d[obj].norm(dim=1).mean() * 1e3
+
+    base = g.pos.detach().clone()
+    pos = base.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(objective(pos), pos)
+    assert grad[touching].abs().sum() > 0
+    h = 1e-7
+    for node in touching[:3].tolist() + finger[:1].tolist():
+        for c in range(3):
+            p1, p2 = base.clone(), base.clone()
+            p1[node, c] += h
+            p2[node, c] -= h
+            fd = (objective(p1) - objective(p2)).item() / (2 * h)
+            assert fd == pytest.approx(grad[node, c].item(), rel=1e-5, abs=1e-8), (node, c)
+
+
+@pytest.mark.parametrize("kw", [{"outputs": "separate"}, {"force_feature": "total"}, {"force_on": "nodes"}])
+def test_ablation_variants_forward(shards, kw):
+    ds = _dataset(shards, [[0, 0, 0], [1, 1, 1]])
+    net = _net(ds, **kw)
+    assert len(net.networks) == (2 if kw.get("outputs") == "separate" else 1)
+    batch = next(iter(DataLoader(ds, batch_size=2)))
+    out = net(batch)
+    assert out.shape == (batch.num_nodes, 4) and torch.isfinite(out).all()
+    s, d = net.fields(batch)
+    assert (s >= 0).all() and torch.isfinite(d).all()
+
+
+def test_multi_step_rollout(shards):
+    ds = _dataset(shards, [[0, 0, 0], [1, 1, 1]], steps=(1, 2), ramp_stride=1)
+    assert not torch.equal(ds[0].prev_displacement, torch.zeros_like(ds[0].displacement))  # prev = step 0
+    net = _net(ds, torch.float64, prediction="multi_step", num_steps=3)
+    batch = next(iter(DataLoader(ds, batch_size=2))).to_dtype(torch.float64)
+    # teacher-forced targets are increments from the previous ramp state
+    _, d = net.scaled_targets(batch)
+    e = batch.youngs_modulus[batch.batch].unsqueeze(1)
+    torch.testing.assert_close(d, (batch.displacement - batch.prev_displacement) * e / 1e6)
+    with torch.no_grad():
+        s, disp = net.fields(batch)
+    assert torch.isfinite(s).all() and torch.isfinite(disp).all()
+    for key in range(4):  # every finger moves rigidly along its closing direction
+        on = (batch.batch * 2 + batch.finger_id == key) & (batch.node_type == NODE_FINGER)
+        assert torch.allclose(disp[on], disp[on][:1].expand_as(disp[on]))
+        assert torch.allclose(
+            torch.linalg.cross(disp[on][0], batch.closing_dir[on][0]), torch.zeros(3, dtype=torch.float64)
+        )
+    one = _net(ds, torch.float64, prediction="multi_step", num_steps=1)
+    with torch.no_grad():
+        s1, d1 = one.fields(batch)
+        ref_s, ref_d = one.to_physical(one(batch, batch.pos, batch.force), batch)
+    obj = batch.node_type != NODE_FINGER
+    torch.testing.assert_close(s1, ref_s)
+    torch.testing.assert_close(d1[obj], ref_d[obj])
+    with pytest.raises(KeyError, match="prev_displacement"):
+        net(next(iter(DataLoader(_dataset(shards, [[0, 0, 0]]), batch_size=1))).to_dtype(torch.float64))
+
+
+def test_unfitted_network_refuses_to_predict(shards):
+    ds = _dataset(shards, [[0, 0, 0]])
+    with pytest.raises(RuntimeError, match="normalizers are not fitted"):
+        DefGraspNet(latent=8, num_blocks=1)(ds[0])

@@ -1,0 +1,189 @@
+"""Inference API: checkpoint round trip, finger input variants, chunking, gradients to the gripper pose."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from lightning import Trainer
+from test_data_synthetic import make_shards
+
+from defgraspnets.data.datamodule import GraspDataModule
+from defgraspnets.fem.mesh import TetMesh
+from defgraspnets.models.defgraspnets_module import DefGraspNetsModule
+from defgraspnets.models.predictor import DefGraspNetsPredictor, FingerGeometry, finger_contact_poses
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_torch_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A tiny module fitted for a few steps with Lightning, and its saved checkpoint."""
+    root = tmp_path_factory.mktemp("pred")
+    dm = GraspDataModule(
+        str(make_shards(root / "grasps", grasps=3, num_steps=2, with_real=False)),
+        batch_size=2,
+        statistics_samples=8,
+        contact_radius=0.004,
+    )
+    module = DefGraspNetsModule(latent=16, num_blocks=2, lr=1e-3)
+    trainer = Trainer(
+        max_steps=3,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        limit_val_batches=1,
+        num_sanity_val_steps=0,
+        accelerator="cpu",
+    )
+    trainer.fit(module, datamodule=dm)
+    path = root / "model.ckpt"
+    trainer.save_checkpoint(path)
+    return module.eval(), dm, path
+
+
+def test_checkpoint_round_trip_predicts_identically(trained):
+    module, dm, path = trained
+    predictor = DefGraspNetsPredictor.from_checkpoint(path)
+    assert predictor.contact_radius == pytest.approx(0.004)
+    batch = next(iter(dm.val_dataloader()))
+    with torch.no_grad():
+        s0, d0 = module.net.fields(batch)
+        s1, d1 = predictor.net.fields(batch)
+    assert torch.equal(s0, s1) and torch.equal(d0, d1)
+    for a, b in zip(module.net.normalizers, predictor.net.normalizers):
+        assert torch.equal(a.mean, b.mean) and torch.equal(a.std, b.std)
+    with pytest.raises(FileNotFoundError, match="checkpoint not found"):
+        DefGraspNetsPredictor.from_checkpoint(path.with_name("missing.ckpt"))
+
+
+def _grasp_inputs(dm):
+    sh = dm.shards[0]
+    mesh = TetMesh(sh.object.points, sh.object.tets)
+    fingers = sh.fingers
+    contact = sh.finger_contact_pose  # (G, 2, 4, 4)
+    d = 0.01  # closing distance of each finger from the open gripper
+    opened = contact.copy()
+    opened[:, :, :3, 3] -= d * sh.closing_direction
+    gripper = opened[:, 0]  # gripper frame = finger 0 frame when open
+    open_pose = np.stack([np.eye(4), np.linalg.inv(gripper[0]) @ opened[0, 1]])
+    geometry = FingerGeometry(fingers.vertices, fingers.faces, fingers.closing_axis, open_pose)
+    return sh, mesh, geometry, gripper, np.full((len(contact), 2), d)
+
+
+def test_finger_input_variants_agree(trained):
+    module, dm, path = trained
+    predictor = DefGraspNetsPredictor(module.net, 0.004, contact_backend="kdtree")
+    sh, mesh, geometry, gripper, dist = _grasp_inputs(dm)
+    poses, dirs = finger_contact_poses(
+        *(torch.as_tensor(x) for x in (gripper, geometry.open_pose, geometry.closing_axis, dist))
+    )
+    np.testing.assert_allclose(poses.numpy(), sh.finger_contact_pose, atol=1e-12)
+    np.testing.assert_allclose(dirs.numpy(), sh.closing_direction, atol=1e-12)
+    force, e = torch.tensor([2.0, 5.0, 8.0]), 2e5
+    a = predictor.predict(
+        mesh,
+        force,
+        e,
+        finger_vertices=sh.fingers.vertices_at(sh.finger_contact_pose),
+        finger_faces=sh.fingers.faces,
+        closing_direction=sh.closing_direction,
+    )
+    b = predictor.predict(mesh, force, e, fingers=geometry, finger_pose=sh.finger_contact_pose)
+    c = predictor.predict(mesh, force, e, fingers=geometry, gripper_pose=gripper, closing_distance=dist)
+    chunked = predictor.predict(
+        (sh.object.points, sh.object.tets),
+        force,
+        e,
+        fingers=geometry,
+        gripper_pose=gripper,
+        closing_distance=dist,
+        batch_size=2,
+    )
+    assert a.stress.shape == (3, sh.num_vertices) and a.displacement.shape == (3, sh.num_vertices, 3)
+    assert (a.contact_edges > 0).all()
+    for other in (b, c, chunked):
+        torch.testing.assert_close(other.stress, a.stress, rtol=1e-5, atol=1e-3)
+        torch.testing.assert_close(other.displacement, a.displacement, rtol=1e-5, atol=1e-10)
+    # the same grasp state as the dataset's graph gives the same fields
+    ds = dm.datasets["train"]
+    i = int(np.flatnonzero((ds.samples[:, 0] == 0) & (ds.samples[:, 1] == 1))[0])
+    g = ds[i]
+    k, gi, s = g.sample[0, 1:].tolist()
+    with torch.no_grad():
+        ref_s, _ = module.net.fields(g)
+    one = predictor.predict(
+        mesh,
+        float(g.force),
+        float(g.youngs_modulus),
+        fingers=geometry,
+        finger_pose=sh.finger_contact_pose[gi : gi + 1],
+    )
+    torch.testing.assert_close(one.stress[0], ref_s[: sh.num_vertices], rtol=1e-4, atol=1e-2)
+    with pytest.raises(ValueError, match="open_pose"):
+        predictor.predict(
+            mesh,
+            1.0,
+            e,
+            fingers=FingerGeometry(geometry.vertices, geometry.faces, geometry.closing_axis),
+            gripper_pose=gripper,
+            closing_distance=dist,
+        )
+
+
+def test_gradients_reach_gripper_pose_and_closing_distance(trained):
+    module, dm, _ = trained
+    predictor = DefGraspNetsPredictor(module.net, 0.004)
+    sh, mesh, geometry, gripper, dist = _grasp_inputs(dm)
+    pose = torch.as_tensor(gripper, dtype=torch.float32).requires_grad_(True)
+    closing = torch.as_tensor(dist, dtype=torch.float32).requires_grad_(True)
+    out = predictor.predict(
+        mesh, 5.0, 2e5, grad=True, fingers=geometry, gripper_pose=pose, closing_distance=closing
+    )
+    q = out.mean_stress.sum() / 1e3 + out.mean_deformation.sum() * 1e3
+    q.backward()
+    assert torch.isfinite(pose.grad).all() and pose.grad[:, :3, 3].abs().sum() > 0
+    assert torch.isfinite(closing.grad).all() and closing.grad.abs().sum() > 0
+    with torch.no_grad():
+        plain = predictor.predict(
+            mesh, 5.0, 2e5, fingers=geometry, gripper_pose=gripper, closing_distance=dist
+        )
+    assert not plain.stress.requires_grad
+
+
+@pytest.mark.gpu
+def test_predictor_on_cuda_matches_cpu(trained):
+    module, dm, path = trained
+    sh, mesh, geometry, gripper, dist = _grasp_inputs(dm)
+    cpu = DefGraspNetsPredictor.from_checkpoint(path).predict(
+        mesh, 5.0, 2e5, fingers=geometry, gripper_pose=gripper, closing_distance=dist
+    )
+    gpu = DefGraspNetsPredictor.from_checkpoint(path, device="cuda").predict(
+        mesh, 5.0, 2e5, fingers=geometry, gripper_pose=gripper, closing_distance=dist
+    )
+    torch.testing.assert_close(gpu.stress.cpu(), cpu.stress, rtol=1e-3, atol=1.0)
+
+
+def test_precision_options(trained):
+    module, dm, path = trained
+    sh, mesh, geometry, gripper, dist = _grasp_inputs(dm)
+    kw = dict(fingers=geometry, gripper_pose=gripper, closing_distance=dist)
+    ref = DefGraspNetsPredictor.from_checkpoint(path).predict(mesh, 5.0, 2e5, **kw)
+    f64 = DefGraspNetsPredictor.from_checkpoint(path, precision="fp64").predict(mesh, 5.0, 2e5, **kw)
+    assert f64.stress.dtype == torch.float64
+    torch.testing.assert_close(f64.stress.float(), ref.stress, rtol=1e-4, atol=1e-2)
+    bf16 = DefGraspNetsPredictor.from_checkpoint(path, precision="bf16")
+    assert bf16.net.networks[0].node_encoder[0].weight.dtype == torch.bfloat16 and bf16.dtype == torch.float32
+    low = bf16.predict(mesh, 5.0, 2e5, **kw)
+    assert low.stress.dtype == torch.float32
+    rel = (low.stress - ref.stress).abs() / ref.stress.abs().clamp_min(1.0)
+    assert float(rel.max()) < 0.1  # bf16 network: ~1e-2 relative error
+    with pytest.raises(ValueError, match="precision"):
+        DefGraspNetsPredictor.from_checkpoint(path, precision="fp8")

@@ -1,0 +1,257 @@
+"""Tactile HDF5 schema (round trip, atomic resumable writes, validation) and the wrench datamodule."""
+
+import h5py
+import numpy as np
+import pytest
+
+import defgraspnets.data.tactile_schema as schema
+from defgraspnets.data.tactile_datamodule import TactileWrenchDataModule, normalize_depth, split_indices
+from defgraspnets.data.tactile_schema import (
+    PARAM_NAMES,
+    SCHEMA_VERSION,
+    TactileFailures,
+    TactileReferences,
+    TactileSamples,
+    TactileSchemaError,
+    TactileShardWriter,
+    read_tactile_shard,
+)
+
+H, W = 6, 8
+
+
+def references(value=0.15):
+    depth = np.full((2, H, W), value, np.float32)
+    depth[1] -= 0.002  # the inflated PV state bulges towards the pole
+    depth[:, 0, 0] = np.nan  # a pixel without return
+    return TactileReferences(depth, [[101325.0, 6e-4], [1.2e5, 6.1e-4]], ["free_air", "pv73"])
+
+
+def samples(ids, seed=0, points=False):
+    rng = np.random.default_rng(seed)
+    n = len(ids)
+    depth = (0.15 - 0.02 * rng.random((n, H, W))).astype(np.float32)
+    depth[:, 0, 0] = np.nan
+    pose = np.tile([0.0, 0.0, 0.2, 0.0, 0.0, 0.0, 1.0], (n, 1))
+    pose[:, :3] += 0.01 * rng.standard_normal((n, 3))
+    params = np.full((n, len(PARAM_NAMES)), np.nan)
+    params[:, :4] = rng.random((n, 4))
+    return TactileSamples(
+        depth=depth,
+        wrench=rng.standard_normal((n, 6)),
+        indenter_pose=pose,
+        indenter_kind=["sphere"] * n,
+        pv_state=np.tile([101325.0, 6e-4], (n, 1)),
+        reference_index=rng.integers(0, 2, n),
+        params=params,
+        sample_id=np.asarray(ids),
+        points=rng.random((n, H, W, 3)).astype(np.float32) if points else None,
+    )
+
+
+def write_shard(path, n, seed=0, experiment="poke", reference_value=0.15):
+    writer = TactileShardWriter(path, references(reference_value), experiment)
+    writer.append(samples(np.arange(n), seed))
+    return writer.finalize()
+
+
+# --------------------------------------------------------------------------- schema
+def test_round_trip_with_points_and_failures(tmp_path):
+    path = tmp_path / "poke_000.h5"
+    writer = TactileShardWriter(path, references(), "poke", config_yaml="seed: 3\n", store_points=True)
+    a, b = samples(np.arange(5), seed=1, points=True), samples(np.arange(5, 12), seed=2, points=True)
+    writer.append(a)
+    writer.append(b)
+    writer.record_failures(TactileFailures([12], np.zeros((1, len(PARAM_NAMES))), ["solver diverged"]))
+    assert writer.finalize() == path and not (tmp_path / "poke_000.h5.parts").exists()
+
+    shard = read_tactile_shard(path)
+    s = shard.samples
+    assert len(s) == 12 and s.image_shape == (H, W)
+    for name in (
+        "depth",
+        "wrench",
+        "indenter_pose",
+        "pv_state",
+        "reference_index",
+        "params",
+        "sample_id",
+        "points",
+    ):
+        expected = np.concatenate([getattr(a, name), getattr(b, name)])
+        np.testing.assert_array_equal(getattr(s, name), expected, err_msg=name)
+    assert list(s.indenter_kind) == ["sphere"] * 12
+    assert s.depth.dtype == np.float32 and np.isnan(s.depth[:, 0, 0]).all()
+    assert shard.references.same_as(references())
+    assert list(shard.failures.reason) == ["solver diverged"] and list(shard.failures.sample_id) == [12]
+    assert shard.attrs["schema_version"] == SCHEMA_VERSION and shard.attrs["config_yaml"] == "seed: 3\n"
+    assert shard.experiment == "poke" and shard.attrs["generator_version"] and shard.attrs["created"]
+    np.testing.assert_array_equal(shard.reference_depth(), shard.references.depth[s.reference_index])
+    assert read_tactile_shard(path, load_points=False).samples.points is None
+
+
+def test_killed_run_resumes_without_corruption(tmp_path, monkeypatch):
+    path = tmp_path / "forearm_001.h5"
+    writer = TactileShardWriter(path, references(), "forearm")
+    writer.append(samples(np.arange(4)))
+
+    # the process dies in the middle of writing the next batch
+    def crash(group, batch):
+        group.create_dataset("depth", data=batch.depth[:1])
+        raise KeyboardInterrupt("killed")
+
+    monkeypatch.setattr(schema, "_write_samples", crash)
+    with pytest.raises(KeyboardInterrupt):
+        writer.append(samples(np.arange(4, 8)))
+    monkeypatch.undo()
+    parts = tmp_path / "forearm_001.h5.parts"
+    assert sorted(p.name for p in parts.iterdir()) == ["header.h5", "part-000000.h5"]
+    (parts / ".part-000001.h5.tmp-999").write_bytes(b"garbage from a hard kill")
+    assert not path.exists()
+    with pytest.raises(FileNotFoundError, match="unfinished run"):
+        read_tactile_shard(path)
+
+    resumed = TactileShardWriter(path, references(), "forearm")
+    assert resumed.completed_sample_ids == {0, 1, 2, 3} and resumed.num_samples == 4
+    assert not (parts / ".part-000001.h5.tmp-999").exists()
+    with pytest.raises(TactileSchemaError, match="already written"):
+        resumed.append(samples([3, 4]))
+    todo = [i for i in range(10) if i not in resumed.completed_sample_ids]
+    resumed.append(samples(todo, seed=5))
+    resumed.finalize()
+    shard = read_tactile_shard(path)
+    np.testing.assert_array_equal(shard.samples.sample_id, np.arange(10))
+    with pytest.raises(FileExistsError, match="already complete"):
+        TactileShardWriter(path, references(), "forearm")
+
+
+def test_resume_must_match_the_unfinished_run(tmp_path):
+    path = tmp_path / "s.h5"
+    TactileShardWriter(path, references(), "poke").append(samples([0]))
+    with pytest.raises(TactileSchemaError, match="experiment"):
+        TactileShardWriter(path, references(), "forearm")
+    with pytest.raises(TactileSchemaError, match="reference images"):
+        TactileShardWriter(path, references(0.16), "poke")
+
+
+def test_invalid_batches_raise_clear_errors():
+    good = samples(np.arange(3))
+    with pytest.raises(TactileSchemaError, match="non-finite wrench"):
+        TactileSamples(**{**_fields(good), "wrench": np.where(np.eye(3, 6) > 0, np.nan, good.wrench)})
+    pose = good.indenter_pose.copy()
+    pose[1, 3:] = [0.0, 0.0, 0.0, 2.0]
+    with pytest.raises(TactileSchemaError, match="quaternions must be unit"):
+        TactileSamples(**{**_fields(good), "indenter_pose": pose})
+    with pytest.raises(TactileSchemaError, match="wrench must have shape"):
+        TactileSamples(**{**_fields(good), "wrench": good.wrench[:, :3]})
+    with pytest.raises(TactileSchemaError, match="depth must have shape"):
+        TactileSamples(**{**_fields(good), "depth": good.depth[0]})
+    with pytest.raises(TactileSchemaError, match="inf or negative"):
+        TactileSamples(**{**_fields(good), "depth": -good.depth})
+    with pytest.raises(TactileSchemaError, match="repeat"):
+        TactileSamples(**{**_fields(good), "sample_id": [1, 1, 2]})
+
+
+def _fields(s):
+    names = (
+        "depth",
+        "wrench",
+        "indenter_pose",
+        "indenter_kind",
+        "pv_state",
+        "reference_index",
+        "params",
+        "sample_id",
+        "points",
+    )
+    return {k: getattr(s, k) for k in names}
+
+
+def test_writer_rejects_inconsistent_batches(tmp_path):
+    writer = TactileShardWriter(tmp_path / "s.h5", references(), "poke")
+    wrong = samples([0])
+    wrong.depth = np.zeros((1, H + 1, W), np.float32)
+    with pytest.raises(TactileSchemaError, match="image size"):
+        writer.append(wrong)
+    far = samples([0])
+    far.reference_index[:] = 5
+    with pytest.raises(TactileSchemaError, match="reference_index"):
+        writer.append(far)
+    with pytest.raises(TactileSchemaError, match="points given"):
+        writer.append(samples([0], points=True))
+
+
+def test_reader_rejects_foreign_and_outdated_files(tmp_path):
+    path = write_shard(tmp_path / "s.h5", 3)
+    with h5py.File(path, "r+") as f:
+        f.attrs["schema_version"] = SCHEMA_VERSION + 1
+    with pytest.raises(TactileSchemaError, match="schema_version"):
+        read_tactile_shard(path)
+    foreign = tmp_path / "foreign.h5"
+    with h5py.File(foreign, "w") as f:
+        f["x"] = [1]
+    with pytest.raises(TactileSchemaError, match="not a tactile dataset"):
+        read_tactile_shard(foreign)
+    (tmp_path / "text.h5").write_text("not hdf5")
+    with pytest.raises(TactileSchemaError, match="not a readable HDF5"):
+        read_tactile_shard(tmp_path / "text.h5")
+    with pytest.raises(FileNotFoundError, match="not found"):
+        read_tactile_shard(tmp_path / "missing.h5")
+
+
+# --------------------------------------------------------------------------- datamodule
+def test_normalization_against_the_reference():
+    depth = np.array([[0.14, np.nan], [0.15, 0.16]], np.float32)
+    ref = np.array([[0.15, 0.15], [np.nan, 0.15]], np.float32)
+    x = normalize_depth(depth, ref, 0.01)
+    np.testing.assert_allclose(x, [[-1.0, 0.0], [0.0, 1.0]], atol=1e-5)
+    import torch
+
+    np.testing.assert_allclose(normalize_depth(torch.from_numpy(depth), ref, 0.01).numpy(), x, atol=1e-6)
+    with pytest.raises(ValueError, match="depth_scale"):
+        normalize_depth(depth, ref, 0.0)
+
+
+def test_datamodule_split_batches_and_combined_dataset(tmp_path):
+    write_shard(tmp_path / "poke_000.h5", 50, seed=1)
+    write_shard(tmp_path / "poke_001.h5", 30, seed=2)
+    write_shard(tmp_path / "forearm_000.h5", 40, seed=3, experiment="forearm")
+
+    poke = TactileWrenchDataModule([str(tmp_path / "poke_*.h5")], batch_size=16, seed=0)
+    poke.setup()
+    assert (len(poke.data_train), len(poke.data_val)) == (64, 16)  # 80:20 of every shard
+    x, y = next(iter(poke.train_dataloader()))
+    assert x.shape == (16, 1, H, W) and y.shape == (16, 6) and x.dtype == y.dtype
+    # a sample is (depth - reference) / scale of its own shard row
+    ds = poke.data_val.datasets[0]
+    s = ds.shard.samples
+    row = ds.indices[0]
+    expected = normalize_depth(s.depth[row], ds.shard.references.depth[s.reference_index[row]], 0.01)
+    np.testing.assert_allclose(ds[0][0][0].numpy(), expected)
+    np.testing.assert_allclose(ds[0][1].numpy(), s.wrench[row].astype(np.float32))
+    assert poke.reference_depth is None  # two PV states
+
+    def val_ids(dm):
+        return {
+            (d.shard.path.name, int(i))
+            for d in dm.data_val.datasets
+            for i in d.shard.samples.sample_id[d.indices]
+        }
+
+    again = TactileWrenchDataModule([str(tmp_path / "poke_*.h5")], seed=0)
+    again.setup()
+    assert val_ids(again) == val_ids(poke)  # seeded
+    other = TactileWrenchDataModule([str(tmp_path / "poke_*.h5")], seed=1)
+    other.setup()
+    assert val_ids(other) != val_ids(poke)
+    forearm = TactileWrenchDataModule([str(tmp_path / "forearm_*.h5")], batch_size=400)
+    forearm.setup()
+    combined = TactileWrenchDataModule([str(tmp_path / "poke_*.h5"), str(tmp_path / "forearm_*.h5")])
+    combined.setup()
+    assert val_ids(combined) == val_ids(poke) | val_ids(forearm)  # same validation samples
+    assert len(combined.data_train) == len(poke.data_train) + len(forearm.data_train)
+
+    with pytest.raises(FileNotFoundError, match="no tactile shard"):
+        TactileWrenchDataModule([str(tmp_path / "missing_*.h5")]).setup()
+    with pytest.raises(ValueError, match="no training data"):
+        split_indices(1, 0.6, 0, "x")

@@ -1,0 +1,219 @@
+"""train.py and scripts/evaluate.py end to end on CPU, the Hydra config tree, struct-mode errors."""
+
+from __future__ import annotations
+
+import csv
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
+from omegaconf import OmegaConf
+from test_data_synthetic import make_shards
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = [
+    "model.latent=8",
+    "model.num_blocks=1",
+    "data.statistics_samples=8",
+    "data.batch_size=8",
+    "data.eval_steps=[-1]",
+    "extras.print_config=false",
+]
+
+
+def _run(script: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
+    env = {
+        **os.environ,
+        "OMP_NUM_THREADS": "1",
+        "WANDB_MODE": "offline",
+        "HYDRA_FULL_ERROR": "1",
+        "PYTHONWARNINGS": "ignore",
+    }
+    return subprocess.run(
+        [sys.executable, str(ROOT / script), *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
+@pytest.fixture(scope="module")
+def data_root(tmp_path_factory):
+    root = tmp_path_factory.mktemp("train")
+    make_shards(root / "grasps", grasps=3, num_steps=2)
+    return root
+
+
+@pytest.fixture(scope="module")
+def first_run(data_root):
+    out = data_root / "run1"
+    r = _run(
+        "train.py",
+        "experiment=defgraspnets",
+        f"paths.data_dir={data_root}",
+        f"paths.log_dir={data_root}/logs",
+        f"hydra.run.dir={out}",
+        "trainer.max_epochs=1",
+        *TINY,
+        cwd=data_root,
+    )
+    assert r.returncode == 0, r.stderr[-4000:]
+    return out
+
+
+def _metrics(run: Path) -> list[dict]:
+    with open(next(run.glob("csv/version_*/metrics.csv"))) as f:
+        return list(csv.DictReader(f))
+
+
+def test_train_fits_tests_and_checkpoints(first_run):
+    assert (first_run / "checkpoints" / "last.ckpt").exists()
+    rows = _metrics(first_run)
+    keys = set().union(*(r.keys() for r in rows))
+    for k in (
+        "train/loss_epoch",
+        "val/loss",
+        "val/tau_s",
+        "val/tau_d",
+        "val/mae_stress_kpa",
+        "val/mae_deformation_mm",
+        "test/loss",
+        "test/tau_s",
+        "test/mae_stress_pa",
+    ):
+        assert k in keys, k
+    assert any(r.get("test/loss") for r in rows)
+    assert list(first_run.glob("wandb/offline-run-*")), "W&B offline run missing"
+    ckpt = torch.load(first_run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    assert (
+        ckpt["hyper_parameters"]["latent"] == 8
+        and ckpt["datamodule_hyper_parameters"]["split"] == "unseen_grasps"
+    )
+    assert float(ckpt["state_dict"]["contact_radius"]) == pytest.approx(0.005)
+    assert ckpt["state_dict"]["net.stress_norm.count"] > 0
+
+
+@pytest.mark.slow
+def test_resume_from_checkpoint(first_run, data_root):
+    out = data_root / "run2"
+    r = _run(
+        "train.py",
+        "experiment=defgraspnets",
+        f"paths.data_dir={data_root}",
+        f"hydra.run.dir={out}",
+        "trainer.max_epochs=2",
+        "test=false",
+        "logger=csv",
+        f"ckpt_path={first_run}/checkpoints/last.ckpt",
+        *TINY,
+        cwd=data_root,
+    )
+    assert r.returncode == 0, r.stderr[-4000:]
+    ckpt = torch.load(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    assert ckpt["epoch"] == 1  # resumed at epoch 1 (0-based), trained only the second epoch
+    assert {int(row["epoch"]) for row in _metrics(out) if row["epoch"]} == {1}
+
+
+def test_evaluate_script(first_run, data_root):
+    out = data_root / "eval"
+    r = _run(
+        "scripts/evaluate.py",
+        f"ckpt_path={first_run}/checkpoints/last.ckpt",
+        f"hydra.run.dir={out}",
+        "plots=1",
+        "chamfer_samples=256",
+        "extras.print_config=false",
+        cwd=data_root,
+    )
+    assert r.returncode == 0, r.stderr[-4000:]
+    text = (out / "results.md").read_text()
+    assert "| unseen_grasps |" in text and "τ_s" in text and "d_C [mm]" in text
+    assert (out / "results.json").exists()
+    assert (out / "fields_unseen_grasps_0_stress.png").stat().st_size > 10_000
+
+
+@pytest.mark.slow
+def test_multirun_sweep(data_root):
+    r = _run(
+        "train.py",
+        "-m",
+        "experiment=defgraspnets",
+        f"paths.data_dir={data_root}",
+        f"hydra.sweep.dir={data_root}/sweep",
+        "model.latent=4,8",
+        "trainer.max_epochs=1",
+        "test=false",
+        "logger=csv",
+        "optimized_metric=val/loss",
+        "+trainer.limit_train_batches=2",
+        *TINY[1:],
+        cwd=data_root,
+    )
+    assert r.returncode == 0, r.stderr[-4000:]
+    for job in ("0", "1"):
+        assert (data_root / "sweep" / job / "checkpoints" / "last.ckpt").exists()
+
+
+# ---------------------------------------------------------------------------------------------- config tree
+def _compose(*overrides: str):
+    os.environ.setdefault("PROJECT_ROOT", str(ROOT))
+    with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base="1.3"):
+        return compose("train.yaml", overrides=list(overrides), return_hydra_config=True)
+
+
+def test_config_overrides_and_experiments():
+    cfg = _compose(
+        "experiment=defgraspnets", "model.latent=64", "trainer.max_epochs=3", "data.split=unseen_E"
+    )
+    assert cfg.model.latent == 64 and cfg.trainer.max_epochs == 3 and cfg.data.split == "unseen_E"
+    assert cfg.model.num_blocks == 15 and cfg.model.hidden_layers == 2 and cfg.data.contact_radius == 0.005
+    assert cfg.model.lr == 5e-5 and cfg.model.lr_final == 1e-6 and cfg.model.lr_decay_epochs == 25
+    assert set(cfg.logger) == {"csv", "wandb"} and cfg.logger.wandb.offline is True
+    assert {"model_checkpoint", "lr_monitor"} <= set(cfg.callbacks)
+    for name, key, value in (
+        ("v1_separate", "outputs", "separate"),
+        ("v3_total_force", "force_feature", "total"),
+        ("v4_node_force", "force_on", "nodes"),
+        ("v2_multi_step", "prediction", "multi_step"),
+    ):
+        c = _compose(f"experiment=defgraspnets_{name}")
+        assert c.model[key] == value and c.model.latent == 128, name
+    assert _compose("experiment=defgraspnets_v2_multi_step").data.ramp_stride == 10
+    ddp = _compose("trainer=ddp", "trainer.num_nodes=4")
+    assert ddp.trainer.strategy == "ddp" and ddp.trainer.devices == -1 and ddp.trainer.num_nodes == 4
+    assert _compose("trainer=gpu").trainer.accelerator == "gpu"
+    grid = _compose("hparams_search=defgraspnets_grid")
+    assert grid.optimized_metric == "val/loss" and "model.latent" in grid.hydra.sweeper.params
+    # every model/data config instantiates (no missing _target_ arguments)
+    OmegaConf.resolve(cfg.model)
+
+
+def test_learning_rate_decays_exponentially_over_25_epochs():
+    from defgraspnets.models.defgraspnets_module import DefGraspNetsModule
+
+    module = DefGraspNetsModule(latent=4, num_blocks=1)
+    conf = module.configure_optimizers()
+    opt, sched = conf["optimizer"], conf["lr_scheduler"]["scheduler"]
+    assert conf["lr_scheduler"]["interval"] == "epoch"
+    lrs = []
+    for _ in range(30):
+        lrs.append(opt.param_groups[0]["lr"])
+        opt.step()
+        sched.step()
+    assert lrs[0] == pytest.approx(5e-5) and lrs[25] == pytest.approx(1e-6) and lrs[29] == pytest.approx(1e-6)
+    ratios = [lrs[i + 1] / lrs[i] for i in range(24)]
+    assert max(ratios) == pytest.approx(min(ratios)) and ratios[0] == pytest.approx((1e-6 / 5e-5) ** (1 / 25))
+
+
+def test_wrong_config_key_is_a_clear_error():
+    with pytest.raises(ConfigCompositionException, match="latnt"):
+        _compose("model.latnt=64")
+    with pytest.raises(ConfigCompositionException, match="experiment"):
+        _compose("experiment=does_not_exist")
