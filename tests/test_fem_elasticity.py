@@ -124,7 +124,7 @@ def test_patch_test_large_strain_gives_constant_exact_stress():
     np.testing.assert_allclose(
         eq.tet_stress[0],
         np.broadcast_to(expected, eq.tet_stress[0].shape),
-        atol=1e-9 * np.abs(expected).max(),
+        atol=1e-7 * np.abs(expected).max(),
     )
     # strain energy = V Psi(F)
     s = np.linalg.svd(F, compute_uv=False)

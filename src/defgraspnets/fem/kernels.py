@@ -40,6 +40,21 @@ def trial_state_kernel(
 
 
 @wp.kernel
+def masked_difference_kernel(
+    a: wp.array(dtype=wp.vec3d),
+    b: wp.array(dtype=wp.vec3d),
+    mask: wp.array(dtype=wp.int32),
+    rows_per_problem: int,
+    out: wp.array(dtype=wp.vec3d),
+):
+    """out = a - b for the rows of problems with mask[b] != 0."""
+    p, r = wp.tid()
+    if mask[p] != 0:
+        i = p * rows_per_problem + r
+        out[i] = a[i] - b[i]
+
+
+@wp.kernel
 def copy_problems_kernel(
     src: wp.array(dtype=wp.vec3d),
     mask: wp.array(dtype=wp.int32),

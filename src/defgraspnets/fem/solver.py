@@ -64,7 +64,8 @@ class SolverOptions:
         linear_solver: "cg" (batched block-Jacobi CG in Warp, on the solver's device), "amg" (CG with a
             smoothed-aggregation multigrid preconditioner, pyamg, on the host), "direct" (SuperLU on the
             host) or "auto" (amg on CPU, cg on CUDA).
-        cg_rtol, cg_max_iterations: Krylov tolerance (relative to the right-hand side) and cap.
+        cg_rtol, cg_max_iterations: tightest Krylov tolerance (relative to the right-hand side) and cap; the
+            tolerance of each Newton step follows the Eisenstat-Walker forcing term (inexact Newton).
         max_step_fraction: largest vertex or travel motion per Newton iteration, as a fraction of the mesh
             bounding-box diagonal.
         escape_fraction: object motion within one increment, as a fraction of the diagonal, that flags
@@ -294,6 +295,8 @@ class QuasiStaticSolver:
         self._q = wp.zeros(B * R, dtype=wp.vec3d, device=dev)
         self._q_ref = wp.zeros_like(self._q)
         self._q_trial = wp.zeros_like(self._q)
+        self._last_increment = wp.zeros_like(self._q)  # q change of each problem's last converged increment
+        self._last_change = np.zeros((B, 0))  # and the load change that caused it (predictor)
         self._positions = wp.zeros(B * N, dtype=wp.vec3d, device=dev)
         self._positions_ref = wp.zeros_like(self._positions)
         self._positions_trial = wp.zeros_like(self._positions)
@@ -419,6 +422,8 @@ class QuasiStaticSolver:
         """Back to the rest state: zero displacement and travel, no loads, statuses cleared."""
         self._q.zero_()
         self._q_ref.zero_()
+        self._last_increment.zero_()
+        self._last_change = np.zeros((self.batch_size, 0))
         self._lag_force.zero_()
         self._stick_stretch.zero_()
         self._load = BodyLoad()
@@ -680,8 +685,12 @@ class QuasiStaticSolver:
         newton_total = np.zeros(B, dtype=int)
         linear_total = np.zeros(B, dtype=int)
         residual = np.zeros(B)
+        change = np.concatenate(
+            [(end[k] - start[k]).reshape(B, -1) for k in ("dof", "nodal_force", "prescribed")], 1
+        )
         while todo.any():
             log.debug("load increment: fractions %s -> %s", lam_done[todo][:4], lam_try[todo][:4])
+            self._predict(change * (lam_try - lam_done)[:, None], todo)
             self._apply_increment(lam_try, start, end, todo)
             ok, fail_status, it, lin, res = self._newton(todo)
             newton_total += it
@@ -690,7 +699,7 @@ class QuasiStaticSolver:
             good = todo & ok
             bad = todo & ~ok
             if good.any():
-                self._commit(good)
+                self._commit(good, change * (lam_try - lam_done)[:, None])
                 step = lam_try - lam_done
                 lam_done[good] = lam_try[good]
                 finished = good & (lam_done >= 1.0)
@@ -776,6 +785,7 @@ class QuasiStaticSolver:
                 device=self.device,
             )
             res = res_arr.numpy()
+            previous = residual.copy()
             residual[working] = res[working]
             scale = np.maximum(np.maximum(fscale, lscale), dof_targets.max(axis=1, initial=0.0))
             nonfinite = working & ~np.isfinite(res)
@@ -807,10 +817,19 @@ class QuasiStaticSolver:
                 inputs=[sysm.gradient, self._free, active, self.rows_per_problem, sysm.rhs, res_arr],
                 device=self.device,
             )
+            # inexact Newton (Eisenstat-Walker): solve only as accurately as the nonlinear residual warrants
+            tol = o.rtol * scale + atol
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ew = np.where(np.isfinite(previous), 0.9 * (res / previous) ** 2, 0.1)
+                floor = 0.5 * tol / res
+            forcing = np.clip(np.maximum(ew, floor), o.cg_rtol, 0.1)
+            # safeguard: where Newton stagnates, solve exactly (CG resolves soft and runaway modes last)
+            forcing[res > 0.9 * previous] = o.cg_rtol
+            linear_rtol = float(forcing[working].min())
             if self.linear_solver == "cg":
-                n_lin, _ = sysm.solve_cg(o.cg_rtol, o.cg_max_iterations)
+                n_lin, _ = sysm.solve_cg(linear_rtol, o.cg_max_iterations)
             elif self.linear_solver == "amg":
-                n_lin, _ = sysm.solve_amg(self._near_nullspace, o.cg_rtol, o.cg_max_iterations)
+                n_lin, _ = sysm.solve_amg(self._near_nullspace, linear_rtol, o.cg_max_iterations)
             else:
                 n_lin, _ = sysm.solve_direct()
             lin_iters[working] += n_lin
@@ -906,8 +925,36 @@ class QuasiStaticSolver:
         self._unpack(self._q, self._positions, self._travel)
         return result
 
-    def _commit(self, mask: np.ndarray):
+    def _predict(self, change: np.ndarray, mask: np.ndarray):
+        """Initial guess of an increment: q = q_ref + r * (last converged increment of q), where r is the
+        size of this load change relative to the last one (0 unless both changes are parallel)."""
+        ratio = np.zeros(self.batch_size)
+        if self._last_change.shape == change.shape:
+            last = self._last_change
+            dot = np.einsum("bi,bi->b", change, last)
+            norms = np.linalg.norm(change, axis=1) * np.linalg.norm(last, axis=1)
+            parallel = mask & (norms > 0) & (dot > 0.999 * norms)
+            ratio[parallel] = np.minimum(2.0, dot[parallel] / np.einsum("bi,bi->b", last, last)[parallel])
+        self._step.assign(ratio)
+        wp.launch(
+            kk.trial_state_kernel,
+            dim=(self.batch_size, self.rows_per_problem),
+            inputs=[self._q_ref, self._last_increment, self._step, self.rows_per_problem, self._q],
+            device=self.device,
+        )
+
+    def _commit(self, mask: np.ndarray, change: np.ndarray):
+        """Accept the masked problems' states as converged: friction memory, predictor data, reference."""
         m = self._active_array(mask)
+        wp.launch(
+            kk.masked_difference_kernel,
+            dim=(self.batch_size, self.rows_per_problem),
+            inputs=[self._q, self._q_ref, m, self.rows_per_problem, self._last_increment],
+            device=self.device,
+        )
+        if self._last_change.shape != change.shape:
+            self._last_change = np.zeros_like(change)
+        self._last_change[mask] = change[mask]
         if self.num_bodies:
             wp.launch(
                 ck.commit_stick_stretch_kernel,

@@ -148,8 +148,8 @@ class BatchedSystem:
         self.operator = wpl.aslinearoperator(
             self.matrix, batch_offsets=self.batch_offsets, max_batch_length=rpp * 3
         )
-        self._cg = None
-        self._csr_cache = None
+        self._amg = None
+        self._amg_iterations = None
 
     def zero(self):
         self.values.zero_()
@@ -176,19 +176,16 @@ class BatchedSystem:
         """Block-Jacobi preconditioned CG on all problems at once (per-problem step sizes and tolerances)."""
         M = wpl.preconditioner(self.matrix, ptype="block_jacobi_direct")
         self.increment.zero_()
-        if self._cg is None:
-            self._cg = wpl.cg(
-                self.operator,
-                self.rhs,
-                self.increment,
-                tol=rtol,
-                maxiter=maxiter,
-                M=M,
-                check_every=10,
-                use_cuda_graph=False,
-                run=False,
-            )
-        iters, residual, _ = self._cg(M=M)
+        iters, residual, _ = wpl.cg(
+            self.operator,
+            self.rhs,
+            self.increment,
+            tol=rtol,
+            maxiter=maxiter,
+            M=M,
+            check_every=10,
+            use_cuda_graph=False,
+        )
         return int(iters), float(residual)
 
     def host_matrix(self) -> sp.csr_matrix:
@@ -214,14 +211,29 @@ class BatchedSystem:
         """CG preconditioned by smoothed-aggregation algebraic multigrid (pyamg) on the host, with the
         rigid-body modes as near-null space (about 20-30 iterations for elasticity at any mesh size)."""
         import pyamg
+        import pyamg.krylov
 
         A = self.host_matrix()
         b = self.rhs.numpy().reshape(-1)
         if not np.any(b):
             self._set_increment(np.zeros_like(b))
             return 0, 0.0
-        ml = pyamg.smoothed_aggregation_solver(A, B=near_nullspace, BH=near_nullspace.copy())
-        residuals: list[float] = []
-        x = ml.solve(b, tol=rtol, accel="cg", maxiter=maxiter, residuals=residuals)
+        # The Hessian changes little between Newton iterations: keep the multigrid hierarchy of an earlier
+        # matrix as preconditioner and rebuild it only when CG needs clearly more iterations than it did.
+        total = 0
+        for rebuild in (self._amg is None, True):
+            if rebuild:
+                self._amg = pyamg.smoothed_aggregation_solver(A, B=near_nullspace, BH=near_nullspace.copy())
+                self._amg_iterations = None
+            residuals: list[float] = []
+            x, info = pyamg.krylov.cg(
+                A, b, tol=rtol, maxiter=maxiter, M=self._amg.aspreconditioner(cycle="V"), residuals=residuals
+            )
+            total += len(residuals)
+            if self._amg_iterations is None:
+                self._amg_iterations = len(residuals)
+                break
+            if info == 0 and len(residuals) <= 2 * self._amg_iterations + 10:
+                break
         self._set_increment(x)
-        return len(residuals), float(residuals[-1]) if residuals else 0.0
+        return total, float(residuals[-1]) if residuals else 0.0
