@@ -181,6 +181,7 @@ class BatchedSystem:
             self.rhs,
             self.increment,
             tol=rtol,
+            atol=0.0,
             maxiter=maxiter,
             M=M,
             check_every=10,
