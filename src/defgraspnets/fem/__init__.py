@@ -19,7 +19,7 @@ Example::
     print(eq.travel["top"], eq.von_mises.max())
 """
 
-from .bodies import BodyError, Capsule, Control, Plane, RigidBody, Sphere, TriangleMesh
+from .bodies import BodyError, Capsule, Control, Plane, RigidBody, RoundedBox, Sphere, TriangleMesh
 from .loads import STANDARD_GRAVITY, BodyLoad
 from .material import Material, MaterialError
 from .mesh import MeshError, TetMesh
@@ -38,6 +38,7 @@ __all__ = [
     "Plane",
     "QuasiStaticSolver",
     "RigidBody",
+    "RoundedBox",
     "STANDARD_GRAVITY",
     "SolveStatus",
     "SolverOptions",

@@ -19,6 +19,8 @@ Shapes and their signed distance g (negative inside) in the shape frame:
 - :class:`Plane`     g = z (the half-space z < 0 is solid; the normal +z points toward the object)
 - :class:`Sphere`    g = |p| - r
 - :class:`Capsule`   g = dist(p, segment [-h e_z, +h e_z]) - r
+- :class:`RoundedBox` g = |max(q, 0)| + min(max_i q_i, 0) - r,  q = |p| - b (a box with rounded edges,
+  e.g. a gripper finger pad: exact and C1 across the rounded edges)
 - :class:`TriangleMesh`  closed, outward-oriented triangle mesh; g = signed distance to the surface
 """
 
@@ -28,7 +30,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Plane", "Sphere", "Capsule", "TriangleMesh", "Control", "RigidBody", "BodyError", "SHAPE_KIND"]
+__all__ = [
+    "Plane",
+    "Sphere",
+    "Capsule",
+    "RoundedBox",
+    "TriangleMesh",
+    "Control",
+    "RigidBody",
+    "BodyError",
+    "SHAPE_KIND",
+]
 
 
 class BodyError(ValueError):
@@ -120,6 +132,50 @@ class Capsule:
         return frame_from_z(self.center, self.direction)
 
 
+@dataclass(frozen=True)
+class RoundedBox:
+    """Rigid box with rounded edges and corners: all points within ``radius`` of the inner box
+    ``|p - center| <= half_extents - radius`` (axis-aligned in the body frame). ``half_extents`` are those
+    of the outer, rounded box [m]; ``radius`` = 0 gives a sharp box."""
+
+    half_extents: tuple
+    radius: float = 0.0
+    center: tuple = (0.0, 0.0, 0.0)
+
+    def __post_init__(self):
+        h = _vec3(self.half_extents, "RoundedBox half_extents")
+        if not np.isfinite(self.radius) or self.radius < 0 or np.any(h <= 0) or np.any(h < self.radius):
+            raise BodyError(
+                f"RoundedBox needs half_extents > 0 and 0 <= radius <= min(half_extents), "
+                f"got {tuple(h)} and {self.radius!r}"
+            )
+        object.__setattr__(self, "half_extents", tuple(h))
+
+    @property
+    def inner_half_extents(self) -> np.ndarray:
+        return np.asarray(self.half_extents) - self.radius
+
+    def shape_frame(self) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, 3] = _vec3(self.center, "RoundedBox center")
+        return T
+
+    def triangle_mesh(self, edge_length: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(vertices, faces) of the surface in the body frame (for display and graphs)."""
+        import trimesh
+
+        h, r = np.asarray(self.half_extents), self.radius
+        if r > 0:
+            box = trimesh.creation.box(extents=2 * (h - r) + 1e-12)
+            sphere = trimesh.creation.icosphere(subdivisions=2, radius=r)
+            mesh = trimesh.convex.convex_hull(
+                (box.vertices[:, None, :] + sphere.vertices[None, :, :]).reshape(-1, 3)
+            )
+        else:
+            mesh = trimesh.creation.box(extents=2 * h)
+        return np.asarray(mesh.vertices) + _vec3(self.center, "center"), np.asarray(mesh.faces)
+
+
 @dataclass(frozen=True, eq=False)
 class TriangleMesh:
     """Closed rigid triangle mesh (e.g. a gripper finger pad) with outward-oriented faces [m]."""
@@ -151,7 +207,7 @@ class TriangleMesh:
         return np.eye(4)
 
 
-SHAPE_KIND = {Plane: 0, Sphere: 1, Capsule: 2, TriangleMesh: 3}
+SHAPE_KIND = {Plane: 0, Sphere: 1, Capsule: 2, TriangleMesh: 3, RoundedBox: 4}
 
 
 @dataclass(frozen=True)
@@ -189,7 +245,7 @@ class RigidBody:
     """A named rigid body: shape, control, Coulomb friction coefficient with the object."""
 
     name: str
-    shape: Plane | Sphere | Capsule | TriangleMesh
+    shape: Plane | Sphere | Capsule | RoundedBox | TriangleMesh
     control: Control = field(default_factory=Control.fixed)
     friction: float = 0.0
 

@@ -2,11 +2,17 @@
 
 Normal contact is a penalty on the signed distance g of each object surface vertex i to body k:
 
-    E_n = 1/2 k_i pen^2,   pen = max(0, -g),   k_i = kappa E A_i / h_i,
+    E_n = k_i pen^3 / (6 delta_i)                          for pen < delta_i,
+    E_n = k_i (pen^2 / 2 - delta_i pen / 2 + delta_i^2 / 6)  beyond,
+    pen = max(0, -g),   k_i = kappa E A_i / h_i,   delta_i = zeta h_i,
 
-with A_i the vertex's lumped surface area and h_i its element size, so the penalty is a contact
-*pressure* stiffness kappa E / h: a contact pressure p penetrates p h / (kappa E), i.e. a fraction
-(p / E) / kappa of the local element size.
+with A_i the vertex's lumped surface area and h_i its element size. Beyond the onset width delta_i the
+penalty is a contact *pressure* stiffness kappa E / h: a contact pressure p penetrates
+p h / (kappa E) + delta / 2, i.e. a fraction (p / E) / kappa + zeta / 2 of the local element size. Within
+the onset the stiffness rises linearly from zero, which makes E_n twice continuously differentiable: a
+vertex that grazes the rim of a contact patch no longer switches Newton's Hessian between 0 and k_i
+from one iteration to the next (with the plain quadratic penalty, grasps of coarse meshes needed
+hundreds of Newton iterations; zeta = 1e-3 brought them to tens).
 
 Friction is Coulomb's law in incremental (quasi-static) elastic-plastic form (penalty friction with
 return mapping, as in Wriggers' Computational Contact Mechanics) with the normal force N_i and contact
@@ -43,6 +49,7 @@ PLANE = wp.constant(0)
 SPHERE = wp.constant(1)
 CAPSULE = wp.constant(2)
 MESH = wp.constant(3)
+ROUNDED_BOX = wp.constant(4)
 
 
 @wp.func
@@ -84,6 +91,7 @@ def shape_signed_distance(
     p: wp.vec3d,
     radius: f64,
     half_length: f64,
+    half_extents: wp.vec3d,
     mesh: wp.uint64,
     mesh_points: wp.array(dtype=wp.vec3d),
     mesh_point_offset: int,
@@ -95,6 +103,26 @@ def shape_signed_distance(
     ez = wp.vec3d(zero, zero, f64(1.0))
     if kind == PLANE:
         return p[2], ez
+    if kind == ROUNDED_BOX:
+        # box of half extents b with edges rounded by r (outer half extents b + r): exact C1 distance
+        q = wp.vec3d(
+            wp.abs(p[0]) - half_extents[0], wp.abs(p[1]) - half_extents[1], wp.abs(p[2]) - half_extents[2]
+        )
+        outside = wp.vec3d(wp.max(q[0], zero), wp.max(q[1], zero), wp.max(q[2], zero))
+        d_out = wp.length(outside)
+        inner = wp.min(wp.max(q[0], wp.max(q[1], q[2])), zero)
+        sgn = wp.vec3d(wp.sign(p[0]), wp.sign(p[1]), wp.sign(p[2]))
+        n = ez
+        if d_out > f64(1e-15):
+            n = wp.cw_mul(outside / d_out, sgn)
+        else:  # deeper than r inside: the nearest face of the inner box
+            if q[0] >= q[1] and q[0] >= q[2]:
+                n = wp.vec3d(sgn[0], zero, zero)
+            elif q[1] >= q[2]:
+                n = wp.vec3d(zero, sgn[1], zero)
+            else:
+                n = wp.vec3d(zero, zero, sgn[2])
+        return d_out + inner - radius, n
     if kind == SPHERE or kind == CAPSULE:
         q = wp.vec3d(zero, zero, zero)
         if kind == CAPSULE:
@@ -107,7 +135,7 @@ def shape_signed_distance(
         return d - radius, n
     # triangle mesh: nearest face from the BVH (float32), exact distance in float64
     pf = wp.vec3(float(p[0]), float(p[1]), float(p[2]))
-    query = wp.mesh_query_point_sign_normal(mesh, pf, query_distance)
+    query = wp.mesh_query_point_sign_winding_number(mesh, pf, query_distance)
     if not query.result:
         return f64(1.0e30), ez
     i0 = wp.mesh_get_index(mesh, query.face * 3 + 0)
@@ -142,6 +170,7 @@ class BodyArrays:
     kind: wp.array(dtype=wp.int32)  # (K,)
     radius: wp.array(dtype=wp.float64)  # (K,)
     half_length: wp.array(dtype=wp.float64)  # (K,)
+    half_extents: wp.array(dtype=wp.vec3d)  # (K,) rounded box: half extents of the inner (unrounded) box
     mesh: wp.array(dtype=wp.uint64)  # (K,) Warp mesh id (0 if not a mesh)
     mesh_point_offset: wp.array(dtype=wp.int32)  # (K,) first vertex in mesh_points
     mesh_points: wp.array(dtype=wp.vec3d)  # float64 copies of all mesh vertices (shape frames)
@@ -168,6 +197,7 @@ def body_gap(bodies: BodyArrays, b: int, k: int, x: wp.vec3d, travel: f64):
         p,
         bodies.radius[k],
         bodies.half_length[k],
+        bodies.half_extents[k],
         bodies.mesh[k],
         bodies.mesh_points,
         bodies.mesh_point_offset[k],
@@ -196,6 +226,37 @@ def contact_stiffness(kappa: f64, youngs: f64, area: f64, size: f64) -> f64:
 
 
 @wp.func
+def penalty_energy(pen: f64, kn: f64, delta: f64) -> f64:
+    """C2 penalty potential of the penetration pen: k pen^3 / (6 delta) up to pen = delta, then
+    k (pen^2 / 2 - delta pen / 2 + delta^2 / 6)."""
+    if pen <= f64(0.0):
+        return f64(0.0)
+    if pen < delta:
+        return kn * pen * pen * pen / (f64(6.0) * delta)
+    return kn * (f64(0.5) * pen * pen - f64(0.5) * delta * pen + delta * delta / f64(6.0))
+
+
+@wp.func
+def penalty_force(pen: f64, kn: f64, delta: f64) -> f64:
+    """Normal contact force dE/dpen >= 0 [N]."""
+    if pen <= f64(0.0):
+        return f64(0.0)
+    if pen < delta:
+        return f64(0.5) * kn * pen * pen / delta
+    return kn * (pen - f64(0.5) * delta)
+
+
+@wp.func
+def penalty_stiffness(pen: f64, kn: f64, delta: f64) -> f64:
+    """d^2E/dpen^2 [N/m]: rises linearly from 0 to k over the onset width delta."""
+    if pen <= f64(0.0):
+        return f64(0.0)
+    if pen < delta:
+        return kn * pen / delta
+    return kn
+
+
+@wp.func
 def friction_energy(s: wp.vec3d, mu_n: f64, k_t: f64) -> f64:
     sn = wp.length(s)
     eps = mu_n / k_t
@@ -214,6 +275,7 @@ def contact_energy_kernel(
     vertex_size: wp.array(dtype=wp.float64),
     youngs: wp.array(dtype=wp.float64),
     kappa: f64,
+    smoothing: f64,
     bodies: BodyArrays,
     lag_normal_force: wp.array(dtype=wp.float64),
     lag_normal: wp.array(dtype=wp.vec3d),
@@ -235,9 +297,7 @@ def contact_energy_kernel(
         t = travel[b * num_dofs + d]
     kn = contact_stiffness(kappa, youngs[b], vertex_area[v], vertex_size[v])
     g, n = body_gap(bodies, b, k, x, t)
-    e = f64(0.0)
-    if g < f64(0.0):
-        e = f64(0.5) * kn * g * g
+    e = penalty_energy(-g, kn, smoothing * vertex_size[v])
     c = (b * surface.shape[0] + si) * bodies.num_bodies + k
     mu_n = bodies.friction[b * bodies.num_bodies + k] * lag_normal_force[c]
     if mu_n > f64(0.0):
@@ -270,6 +330,7 @@ def contact_gradient_hessian_kernel(
     vertex_size: wp.array(dtype=wp.float64),
     youngs: wp.array(dtype=wp.float64),
     kappa: f64,
+    smoothing: f64,
     bodies: BodyArrays,
     lag_normal_force: wp.array(dtype=wp.float64),
     lag_normal: wp.array(dtype=wp.vec3d),
@@ -301,16 +362,18 @@ def contact_gradient_hessian_kernel(
     H_xx = wp.mat33d()
     H_xt = wp.vec3d()
     H_tt = f64(0.0)
-    if g < f64(0.0):
-        pen = -g
-        na = wp.dot(n, a)
-        grad_x = -kn * pen * n
-        grad_t = kn * pen * na
-        H_xx = kn * wp.outer(n, n)
-        H_xt = -kn * na * n
-        H_tt = kn * na * na
-
     c = (b * surface.shape[0] + si) * bodies.num_bodies + k
+    na = wp.dot(n, a)
+    if g < f64(0.0):
+        delta = smoothing * vertex_size[v]
+        fn = penalty_force(-g, kn, delta)
+        kg = penalty_stiffness(-g, kn, delta)
+        grad_x = -fn * n
+        grad_t = fn * na
+        H_xx = kg * wp.outer(n, n)
+        H_xt = -kg * na * n
+        H_tt = kg * na * na
+
     mu_n = bodies.friction[bk] * lag_normal_force[c]
     if mu_n > f64(0.0):
         nl = lag_normal[c]
@@ -367,6 +430,7 @@ def contact_state_kernel(
     vertex_size: wp.array(dtype=wp.float64),
     youngs: wp.array(dtype=wp.float64),
     kappa: f64,
+    smoothing: f64,
     bodies: BodyArrays,
     lag_normal_force: wp.array(dtype=wp.float64),
     lag_normal: wp.array(dtype=wp.vec3d),
@@ -393,10 +457,7 @@ def contact_state_kernel(
     c = (b * surface.shape[0] + si) * bodies.num_bodies + k
     gap[c] = g
     normal[c] = n
-    fn = f64(0.0)
-    if g < f64(0.0):
-        fn = -kn * g
-    normal_force[c] = fn
+    normal_force[c] = penalty_force(-g, kn, smoothing * vertex_size[v])
     mu_n = bodies.friction[b * bodies.num_bodies + k] * lag_normal_force[c]
     ff = wp.vec3d()
     stick = 0

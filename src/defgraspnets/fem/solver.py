@@ -55,7 +55,9 @@ class SolverOptions:
 
     Args:
         contact_stiffness: kappa, penalty pressure stiffness in units of E / h, h the median surface edge
-            length: a contact pressure p penetrates (p / E) h / kappa, reported as ``max_penetration``.
+            length: a contact pressure p penetrates ((p / E) / kappa + zeta / 2) h, reported as
+            ``max_penetration``.
+        contact_smoothing: zeta, onset width of the C2 penalty in units of h (see ``contact.py``).
         rtol: a problem has converged when every free residual force component is below
             ``rtol`` times the largest elastic, body-load or actuator force component.
         max_newton_iterations: per load increment before it is halved.
@@ -68,6 +70,9 @@ class SolverOptions:
             tolerance of each Newton step follows the Eisenstat-Walker forcing term (inexact Newton).
         max_step_fraction: largest vertex or travel motion per Newton iteration, as a fraction of the mesh
             bounding-box diagonal.
+        friction_relag_iterations: Newton iterations of an increment that re-lag the friction normal forces
+            before they are frozen; max_friction_relags: further re-lags allowed to reach a state whose normal
+            forces equal its lagged ones.
         escape_fraction: object motion within one increment, as a fraction of the diagonal, that flags
             the problem ESCAPED (no equilibrium).
         regularization: diagonal shift relative to E h per vertex (removes floating rigid modes).
@@ -76,6 +81,7 @@ class SolverOptions:
     """
 
     contact_stiffness: float = 1000.0
+    contact_smoothing: float = 0.0
     rtol: float = 1e-7
     max_newton_iterations: int = 40
     max_load_bisections: int = 10
@@ -83,6 +89,8 @@ class SolverOptions:
     cg_rtol: float = 1e-8
     cg_max_iterations: int = 5000
     max_step_fraction: float = 0.1
+    friction_relag_iterations: int = 4
+    max_friction_relags: int = 8
     escape_fraction: float = 0.5
     regularization: float = 1e-10
     query_distance: float = 1.0
@@ -96,6 +104,10 @@ class SolverOptions:
         for name in ("contact_stiffness", "rtol", "cg_rtol", "max_step_fraction", "escape_fraction"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"SolverOptions.{name} must be > 0, got {getattr(self, name)!r}")
+        if not 0 <= self.contact_smoothing < 1:
+            raise ValueError(
+                f"SolverOptions.contact_smoothing must be in [0, 1), got {self.contact_smoothing!r}"
+            )
 
 
 def rigid_body_modes(points: np.ndarray, batch_size: int, num_dofs: int) -> np.ndarray:
@@ -273,6 +285,11 @@ class QuasiStaticSolver:
         )
         ba.half_length = wp.array(
             [getattr(b.shape, "half_length", 0.0) for b in self.bodies] or [0.0], dtype=wp.float64, device=dev
+        )
+        ba.half_extents = wp.array(
+            [getattr(b.shape, "inner_half_extents", np.ones(3)) for b in self.bodies] or [np.ones(3)],
+            dtype=wp.vec3d,
+            device=dev,
         )
         ba.mesh = wp.array(mesh_ids if K else np.zeros(1, np.uint64), dtype=wp.uint64, device=dev)
         ba.mesh_point_offset = wp.array(
@@ -480,6 +497,7 @@ class QuasiStaticSolver:
                     self._size,
                     self._youngs,
                     float(self.options.contact_stiffness),
+                    float(self.options.contact_smoothing),
                     self._bodies,
                     self._lag_force,
                     self._lag_normal,
@@ -541,6 +559,7 @@ class QuasiStaticSolver:
                     self._size,
                     self._youngs,
                     float(self.options.contact_stiffness),
+                    float(self.options.contact_smoothing),
                     self._bodies,
                     self._lag_force,
                     self._lag_normal,
@@ -578,6 +597,7 @@ class QuasiStaticSolver:
                 self._size,
                 self._youngs,
                 float(self.options.contact_stiffness),
+                float(self.options.contact_smoothing),
                 self._bodies,
                 self._lag_force,
                 self._lag_normal,
@@ -593,18 +613,40 @@ class QuasiStaticSolver:
             device=self.device,
         )
 
-    def _relag_friction(self, mask: np.ndarray):
-        """Lagged normal forces and normals <- current ones, for the problems in ``mask``."""
+    def _friction_consistency(self, mask: np.ndarray) -> np.ndarray:
+        """max mu (|N - N_lag| + N |n - n_lag|) per problem at the current state, without re-lagging."""
         if not self.num_bodies or not np.any(self._friction[mask] > 0):
-            return
+            return np.zeros(self.batch_size)
         self._contact_state(self._positions, self._travel)
-        m = np.repeat(mask, self.num_surface * self.num_bodies)
+        S = self.num_surface
+        mu = np.repeat(self._friction, S, axis=0).reshape(-1)
+        nf, nn = self._c_force.numpy(), self._c_normal.numpy()
+        lf, ln = self._lag_force.numpy(), self._lag_normal.numpy()
+        delta = mu * (np.abs(nf - lf) + nf * np.linalg.norm(nn - ln, axis=1))
+        return np.where(mask, delta.reshape(self.batch_size, -1).max(axis=1), 0.0)
+
+    def _relag_friction(self, mask: np.ndarray) -> np.ndarray:
+        """Lagged normal forces and normals <- current ones, for the problems in ``mask``.
+
+        Returns per problem the largest change of a contact's friction force capacity this makes,
+        max mu (|N - N_lag| + N |n - n_lag|) [N] (0 where nothing changed or there is no friction)."""
+        change = np.zeros(self.batch_size)
+        if not self.num_bodies or not np.any(self._friction[mask] > 0):
+            return change
+        self._contact_state(self._positions, self._travel)
+        S, K = self.num_surface, self.num_bodies
+        m = np.repeat(mask, S * K)
         lf = self._lag_force.numpy()
         ln = self._lag_normal.numpy()
-        lf[m] = self._c_force.numpy()[m]
-        ln[m] = self._c_normal.numpy()[m]
+        nf, nn = self._c_force.numpy(), self._c_normal.numpy()
+        mu = np.repeat(self._friction, S, axis=0).reshape(-1)  # (B*S*K,) in slot order (b, s, k)
+        delta = mu * (np.abs(nf - lf) + nf * np.linalg.norm(nn - ln, axis=1))
+        change = np.where(mask, delta.reshape(self.batch_size, -1).max(axis=1), 0.0)
+        lf[m] = nf[m]
+        ln[m] = nn[m]
         self._lag_force.assign(lf)
         self._lag_normal.assign(ln)
+        return change
 
     # ------------------------------------------------------------------ loads at a load fraction
     def _apply_increment(self, lam: np.ndarray, start: dict, end: dict, mask: np.ndarray):
@@ -772,8 +814,15 @@ class QuasiStaticSolver:
         max_step = o.max_step_fraction * self.mesh.diameter
         escape = o.escape_fraction * self.mesh.diameter
         sysm = self.system
+        # Friction normal forces are re-lagged at each of the first iterations of an increment (contacts and
+        # their friction establish themselves), then frozen so Newton minimizes one smooth potential (vertices
+        # at the rim of a contact patch would otherwise toggle the friction law between iterations). A state
+        # that converges with frozen lags is accepted only if its own normal forces match the lags.
+        relag = mask.copy()
+        relags = np.zeros(B, dtype=int)
         for _ in range(o.max_newton_iterations + 1):
-            self._relag_friction(working)
+            self._relag_friction(relag & working)
+            relag = working & (iters < o.friction_relag_iterations)
             active = self._active_array(working)
             fscale, lscale = self._assemble(active)
             res_arr = self._scratch[2]
@@ -793,6 +842,14 @@ class QuasiStaticSolver:
                 status[nonfinite] = SolveStatus.NONFINITE
                 working &= ~nonfinite
             conv = working & (res <= o.rtol * scale + atol)
+            frozen = conv & (iters >= o.friction_relag_iterations)
+            if frozen.any():
+                # lag consistency: the converged state's own friction capacities must equal the lagged ones
+                change = self._friction_consistency(frozen)
+                stale = frozen & (change > o.rtol * scale + atol) & (relags < o.max_friction_relags)
+                relags[stale] += 1
+                relag |= stale
+                conv &= ~stale
             if log.isEnabledFor(logging.DEBUG):
                 b0 = int(np.argmax(working))
                 log.debug(
@@ -862,8 +919,8 @@ class QuasiStaticSolver:
         return ok, status, iters, lin_iters, residual
 
     def _line_search(self, working: np.ndarray, active, max_step: float) -> np.ndarray:
-        """Armijo backtracking on Pi per problem; updates the state. Returns per problem 0 (ok),
-        1 (no decrease found) or 2 (non-finite)."""
+        """Armijo backtracking on Pi per problem; updates the state. Returns per problem 0 (accepted) or
+        1 (no acceptable step)."""
         B = self.batch_size
         sysm = self.system
         slope, vmax, dmax = self._scratch[2], self._scratch[3], self._scratch[4]

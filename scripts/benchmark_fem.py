@@ -1,0 +1,148 @@
+"""Benchmark the FEM engine on the grasp squeeze ramp and write the timings as JSON.
+
+    python scripts/benchmark_fem.py                                   # one ramp, 2-core CPU goal <= 10 s
+    python scripts/benchmark_fem.py device=cuda num_grasps=100        # GPU goal: 100 ramps <= 30 s
+
+The first (cold) call compiles and loads the Warp kernels; the timed run is a second, warm run on a fresh
+solver. Config: configs/benchmark_fem.yaml.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import hydra
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+
+def machine_description(device) -> dict:
+    import warp as wp
+
+    info = {
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "warp": wp.__version__,
+        "cpu": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+    }
+    try:
+        with open("/proc/cpuinfo") as f:
+            names = [line.split(":", 1)[1].strip() for line in f if line.startswith("model name")]
+        if names:
+            info["cpu"] = names[0]
+    except OSError:
+        pass
+    info["device"] = device.name if device.is_cuda else "cpu"
+    return info
+
+
+@hydra.main(version_base="1.3", config_path="../configs", config_name="benchmark_fem")
+def main(cfg: DictConfig) -> None:
+    import warp as wp
+
+    from defgraspnets import fem
+    from defgraspnets.grasp.sampler import sample_antipodal_grasps
+    from defgraspnets.grasp.squeeze import make_squeeze_solver, squeeze_ramp, squeeze_solver_options
+
+    wp.config.quiet = True
+    wp.init()
+    device = wp.get_device(cfg.device)
+    size = np.asarray(cfg.object.size, dtype=float)
+    mesh = fem.TetMesh.box(size=size, divisions=tuple(cfg.object.divisions), origin=-size / 2, name="box")
+    grasps = sample_antipodal_grasps(mesh, num_grasps=cfg.num_grasps, seed=cfg.seed)
+    material = fem.Material(cfg.youngs_modulus, cfg.poisson_ratio, cfg.density)
+    options = squeeze_solver_options(linear_solver=cfg.linear_solver)
+
+    out = Path(cfg.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+
+    # cold call: compiles / loads the kernels on a one-step ramp to the first force level
+    solver = make_squeeze_solver(mesh, grasps, material, cfg.friction, device=device, options=options)
+    start = time.perf_counter()
+    squeeze_ramp(solver, cfg.max_force / cfg.steps, 1)
+    wp.synchronize_device(device)
+    cold = time.perf_counter() - start
+
+    solver = make_squeeze_solver(mesh, grasps, material, cfg.friction, device=device, options=options)
+    step_seconds, newton, krylov = [], np.zeros(len(grasps), dtype=int), []
+    record = {
+        "benchmark": "fem_squeeze_ramp",
+        "machine": machine_description(device),
+        "object": {
+            "shape": "box",
+            "size_m": size.tolist(),
+            "vertices": mesh.num_vertices,
+            "tets": mesh.num_tets,
+        },
+        "material": {"youngs_modulus_pa": cfg.youngs_modulus, "poisson_ratio": cfg.poisson_ratio},
+        "grasps": len(grasps),
+        "steps": cfg.steps,
+        "max_force_n": cfg.max_force,
+        "linear_solver": solver.linear_solver,
+        "solver_options": {
+            k: getattr(options, k) for k in ("rtol", "contact_stiffness", "contact_smoothing")
+        },
+        "seconds_cold_first_step": cold,
+        "config": OmegaConf.to_container(cfg, resolve=True),
+    }
+    clock = [time.perf_counter()]
+
+    def record_step(i, force, eq):
+        # the JSON is rewritten after every step, so a run cut short still reports the steps it finished
+        wp.synchronize_device(device)
+        now = time.perf_counter()
+        step_seconds.append(now - clock[0])
+        clock[0] = now
+        newton[:] += eq.newton_iterations
+        krylov.append(int(eq.linear_iterations.max()))
+        record.update(
+            {
+                "completed_steps": i + 1,
+                "seconds": float(np.sum(step_seconds)),
+                "seconds_per_ramp": float(np.sum(step_seconds)) / len(grasps),
+                "step_seconds": [round(t, 4) for t in step_seconds],
+                # the batch iterates in lockstep: its slowest problem sets the pace
+                "newton_iterations_total": int(newton.max()),
+                "newton_iterations_per_step_mean": float(newton.mean() / (i + 1)),
+                "krylov_iterations_total": int(np.sum(krylov)),
+                "converged": int(eq.converged.sum()),
+                "status_counts": {str(k): int(v) for k, v in zip(*np.unique(eq.status, return_counts=True))},
+                "max_penetration_m": float(eq.max_penetration.max()),
+                "grasp_force_reached_n": float(np.median(eq.dof_force["grip"])),
+            }
+        )
+        out.write_text(json.dumps(record, indent=2) + "\n")
+        if not cfg.progress:
+            print(
+                f"step {i + 1}/{cfg.steps}: {step_seconds[-1]:.2f} s, "
+                f"Newton max {int(eq.newton_iterations.max())}",
+                flush=True,
+            )
+
+    squeeze_ramp(solver, cfg.max_force, cfg.steps, progress=cfg.progress, on_step=record_step)
+    print(
+        json.dumps(
+            {
+                k: record[k]
+                for k in (
+                    "grasps",
+                    "steps",
+                    "seconds",
+                    "newton_iterations_total",
+                    "krylov_iterations_total",
+                    "converged",
+                )
+            },
+            indent=None,
+        )
+    )
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
