@@ -1,0 +1,173 @@
+"""The grasp dataset generator: real squeeze ramps written as schema-valid, resumable shards."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from defgraspnets.data.datamodule import GraspDataModule
+from defgraspnets.data.grasp_schema import GraspShard, GraspShardWriter, shard_file_name
+from defgraspnets.grasp import datagen
+from defgraspnets.grasp.datagen import generate_object_shards, shard_grasp_indices, structured_box
+
+MODULI = (1e6, 1e7)
+STEPS = 3
+FORCE = 6.0
+GRASPS = 3
+
+
+def _box():
+    return structured_box((0.03, 0.03, 0.03), (3, 3, 3), name="tinybox")
+
+
+def _generate(out_dir, **kw):
+    args = dict(youngs_modulus=MODULI, num_grasps=GRASPS, steps=STEPS, max_force=FORCE, seed=0, device="cpu")
+    args.update(kw)
+    return generate_object_shards(_box(), out_dir, **args)
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("grasps")
+    (result,) = _generate(out)
+    assert result.path == out / shard_file_name("tinybox", 0, 1) and result.total == len(MODULI) * GRASPS
+    return out
+
+
+def test_shard_holds_physical_fields(data_dir):
+    sh = GraspShard(data_dir / "tinybox__shard0of1.h5")
+    mesh = _box()
+    assert (sh.num_moduli, sh.num_grasps, sh.num_steps, sh.num_vertices) == (
+        2,
+        GRASPS,
+        STEPS,
+        mesh.num_vertices,
+    )
+    np.testing.assert_array_equal(sh.object.youngs_modulus, MODULI)
+    assert sh.attrs["object_category"] == "cuboid" and sh.attrs["generator_version"].startswith(
+        "defgraspnets"
+    )
+    assert len(sh.solved()) == 2 * GRASPS  # stiff box, small force: every ramp converges
+    ramp = FORCE * np.arange(1, STEPS + 1) / STEPS
+    for k, g in sh.solved():
+        # the total normal grasp force reached equals the prescribed ramp force
+        np.testing.assert_allclose(sh.force[k, g], ramp, rtol=1e-5)
+        travel = sh.finger_travel[k, g]
+        assert np.all(np.diff(travel[:, 0]) > 0) and np.allclose(travel[:, 0], travel[:, 1])
+        peak = []
+        for s in range(STEPS):
+            vm, d = sh.fields(k, g, s)
+            assert vm.shape == (mesh.num_vertices,) and d.shape == (mesh.num_vertices, 3)
+            assert np.all(np.isfinite(d)) and np.all(vm >= 0)
+            peak.append(vm.max())
+        assert np.all(np.diff(peak) > 0)
+    # the softer material deforms more under the same force
+    d_soft = np.abs(sh.fields(0, 0, STEPS - 1)[1]).max()
+    d_stiff = np.abs(sh.fields(1, 0, STEPS - 1)[1]).max()
+    assert d_soft > 3 * d_stiff
+    # closing directions are the pads' +y axes and point at each other
+    np.testing.assert_allclose(sh.closing_direction[:, 0], -sh.closing_direction[:, 1], atol=1e-9)
+    sh.close()
+
+
+def test_finished_shard_is_skipped(data_dir):
+    (r,) = _generate(data_dir)
+    assert r.skipped
+
+
+def test_resume_simulates_only_missing_grasps(tmp_path, monkeypatch):
+    calls = []
+    real = datagen._squeeze_modulus
+
+    def spy(mesh, grasps, *args, **kwargs):
+        calls.append(len(grasps))
+        return real(mesh, grasps, *args, **kwargs)
+
+    monkeypatch.setattr(datagen, "_squeeze_modulus", spy)
+
+    class Killed(Exception):
+        pass
+
+    real_write = GraspShardWriter.write
+    written = []
+
+    def write_then_die(self, k, g, *a, **kw):
+        real_write(self, k, g, *a, **kw)
+        written.append((k, g))
+        if len(written) == GRASPS + 1:  # all of modulus 0 and one grasp of modulus 1
+            raise Killed
+
+    monkeypatch.setattr(GraspShardWriter, "write", write_then_die)
+    with pytest.raises(Killed):
+        _generate(tmp_path)
+    partial = tmp_path / "tinybox__shard0of1.partial.h5"
+    assert partial.exists() and not (tmp_path / "tinybox__shard0of1.h5").exists()
+    assert calls == [GRASPS, GRASPS]
+
+    monkeypatch.setattr(GraspShardWriter, "write", real_write)
+    calls.clear()
+    (r,) = _generate(tmp_path)
+    assert calls == [GRASPS - 1]  # only the unwritten grasps of modulus 1 are simulated again
+    sh = GraspShard(r.path)
+    assert len(sh.solved()) == 2 * GRASPS and not partial.exists()
+    assert np.all(np.isfinite(sh.force))
+
+
+def test_failed_ramps_are_not_marked_solved(tmp_path, monkeypatch):
+    real = datagen._squeeze_modulus
+
+    def fail_one(*args, **kwargs):
+        out = real(*args, **kwargs)
+        out["status"][1] = 1  # as if grasp 1 had not converged
+        return out
+
+    monkeypatch.setattr(datagen, "_squeeze_modulus", fail_one)
+    (r,) = _generate(tmp_path, youngs_modulus=(1e7,), num_grasps=2, steps=2)
+    sh = GraspShard(r.path)
+    assert sh.status.tolist() == [[0, 1]] and sh.solved().tolist() == [[0, 0]]
+
+
+def test_really_failing_solve_is_recorded(tmp_path):
+    # a far too large force for a very soft box: the ramp must not be stored as an answer
+    (r,) = _generate(tmp_path, youngs_modulus=(1e3,), num_grasps=1, steps=1, max_force=50.0)
+    sh = GraspShard(r.path)
+    assert sh.status[0, 0] != 0 and len(sh.solved()) == 0
+    assert np.all(np.isnan(sh.fields(0, 0, 0)[0])) and np.isnan(sh.force[0, 0]).all()
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(youngs_modulus=(1e6, -1.0)), "positive"),
+        (dict(youngs_modulus=()), "non-empty"),
+        (dict(max_force=0.0), "max_force"),
+        (dict(steps=0), "steps"),
+        (dict(num_grasps=0), "num_grasps"),
+        (dict(poisson_ratio=0.5), "poisson"),
+        (dict(shard_count=2, shard_index=2), "shard_index"),
+    ],
+)
+def test_bad_input_raises(tmp_path, kw, match):
+    with pytest.raises(ValueError, match=match):
+        _generate(tmp_path, **kw)
+
+
+def test_unknown_object_raises(tmp_path):
+    with pytest.raises(ValueError, match="unknown object 'cuboid_nonsense'"):
+        generate_object_shards("cuboid_nonsense", tmp_path, youngs_modulus=MODULI)
+
+
+def test_shard_split():
+    parts = [shard_grasp_indices(10, i, 3).tolist() for i in range(3)]
+    assert sum(parts, []) == list(range(10))
+    with pytest.raises(ValueError, match="no grasp"):
+        shard_grasp_indices(2, 2, 3)
+
+
+def test_datamodule_loads_generated_data(data_dir):
+    dm = GraspDataModule(str(data_dir), split="unseen_grasps", batch_size=2, statistics_samples=4)
+    dm.setup("fit")
+    batch = next(iter(dm.train_dataloader()))
+    assert batch.graph_count == 2
+    assert np.isfinite(batch.stress.numpy()).all() and np.isfinite(batch.displacement.numpy()).all()
+    assert batch.contact_edge_index.shape[1] > 0
