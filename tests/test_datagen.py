@@ -171,3 +171,29 @@ def test_datamodule_loads_generated_data(data_dir):
     assert batch.graph_count == 2
     assert np.isfinite(batch.stress.numpy()).all() and np.isfinite(batch.displacement.numpy()).all()
     assert batch.contact_edge_index.shape[1] > 0
+
+
+def test_show_a_sample_as_png_and_vtu(data_dir, tmp_path):
+    import meshio
+
+    from defgraspnets.grasp.visualize import export_sample_vtu, load_sample, render_sample
+
+    path = data_dir / "tinybox__shard0of1.h5"
+    sample = load_sample(path, k=0, g=1, s=-1)
+    assert sample.s == STEPS - 1 and sample.force == pytest.approx(FORCE, rel=1e-3)
+    # the pads sit on the object: each finger's nearest vertex is within a millimetre of the deformed surface
+    x = sample.points + sample.displacement
+    for pad in sample.finger_vertices:
+        gap = np.linalg.norm(pad[:, None, :] - x[None, :, :], axis=-1).min()
+        assert gap < 1e-3
+    png = render_sample(sample, tmp_path / "s.png")
+    assert png.stat().st_size > 10_000
+    vtu, fingers = export_sample_vtu(sample, tmp_path / "s.vtu")
+    back = meshio.read(vtu)
+    np.testing.assert_allclose(back.point_data["von_mises"], sample.von_mises)
+    np.testing.assert_allclose(back.points, x)
+    assert meshio.read(fingers).cells_dict["triangle"].shape[0] == 2 * len(sample.finger_faces)
+    with pytest.raises(IndexError, match="grasp index"):
+        load_sample(path, g=GRASPS)
+    with pytest.raises(FileNotFoundError):
+        load_sample(tmp_path / "missing.h5")
