@@ -186,6 +186,15 @@ class BodyArrays:
 
 
 @wp.func
+def body_travel(bodies: BodyArrays, travel: wp.array(dtype=wp.float64), b: int, k: int, num_dofs: int) -> f64:
+    """Travel of body k of problem b along its control axis (0 for a fixed body)."""
+    d = bodies.dof[k]
+    if d >= 0:
+        return travel[b * num_dofs + d]
+    return f64(0.0)
+
+
+@wp.func
 def body_gap(bodies: BodyArrays, b: int, k: int, x: wp.vec3d, travel: f64):
     """Signed distance g and object-frame normal of point x to body k of problem b at ``travel``."""
     bk = b * bodies.num_bodies + k
@@ -291,10 +300,7 @@ def contact_energy_kernel(
         return
     v = surface[si]
     x = positions[b * num_vertices + v]
-    d = bodies.dof[k]
-    t = f64(0.0)
-    if d >= 0:
-        t = travel[b * num_dofs + d]
+    t = body_travel(bodies, travel, b, k, num_dofs)
     kn = contact_stiffness(kappa, youngs[b], vertex_area[v], vertex_size[v])
     g, n = body_gap(bodies, b, k, x, t)
     e = penalty_energy(-g, kn, smoothing * vertex_size[v])
@@ -349,9 +355,7 @@ def contact_gradient_hessian_kernel(
     v = surface[si]
     x = positions[b * num_vertices + v]
     d = bodies.dof[k]
-    t = f64(0.0)
-    if d >= 0:
-        t = travel[b * num_dofs + d]
+    t = body_travel(bodies, travel, b, k, num_dofs)
     kn = contact_stiffness(kappa, youngs[b], vertex_area[v], vertex_size[v])
     bk = b * bodies.num_bodies + k
     a = bodies.axis[bk]
@@ -448,10 +452,7 @@ def contact_state_kernel(
     b, si, k = wp.tid()
     v = surface[si]
     x = positions[b * num_vertices + v]
-    d = bodies.dof[k]
-    t = f64(0.0)
-    if d >= 0:
-        t = travel[b * num_dofs + d]
+    t = body_travel(bodies, travel, b, k, num_dofs)
     kn = contact_stiffness(kappa, youngs[b], vertex_area[v], vertex_size[v])
     g, n = body_gap(bodies, b, k, x, t)
     c = (b * surface.shape[0] + si) * bodies.num_bodies + k
@@ -485,24 +486,23 @@ def commit_stick_stretch_kernel(
     vertex_size: wp.array(dtype=wp.float64),
     youngs: wp.array(dtype=wp.float64),
     kappa: f64,
+    smoothing: f64,
     bodies: BodyArrays,
     lag_normal_force: wp.array(dtype=wp.float64),
     lag_normal: wp.array(dtype=wp.vec3d),
+    stick_stretch: wp.array(dtype=wp.vec3d),
     num_vertices: int,
     num_dofs: int,
     mask: wp.array(dtype=wp.int32),
-    stick_stretch: wp.array(dtype=wp.vec3d),
 ):
-    """At a converged step: s_0 <- s, returned onto the cone |s_0| <= mu N / k_t (0 out of contact)."""
+    """At a converged step: s_0 <- s (in place), returned onto the cone |s_0| <= mu N / k_t (0 out of
+    contact). Takes the arguments of the other contact kernels (``smoothing`` unused): one list serves all."""
     b, si, k = wp.tid()
     if mask[b] == 0:
         return
     c = (b * surface.shape[0] + si) * bodies.num_bodies + k
     v = surface[si]
-    d = bodies.dof[k]
-    t = f64(0.0)
-    if d >= 0:
-        t = travel[b * num_dofs + d]
+    t = body_travel(bodies, travel, b, k, num_dofs)
     kn = contact_stiffness(kappa, youngs[b], vertex_area[v], vertex_size[v])
     mu_n = bodies.friction[b * bodies.num_bodies + k] * lag_normal_force[c]
     s0 = wp.vec3d()

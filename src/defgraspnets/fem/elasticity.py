@@ -32,11 +32,30 @@ f64 = wp.float64
 
 @wp.func
 def tet_deformation_gradient(
-    x0: wp.vec3d, x1: wp.vec3d, x2: wp.vec3d, x3: wp.vec3d, rest_inverse: wp.mat33d
+    positions: wp.array(dtype=wp.vec3d),
+    tets: wp.array2d(dtype=wp.int32),
+    offset: int,
+    e: int,
+    rest_inverse: wp.mat33d,
 ) -> wp.mat33d:
-    """F = [x1-x0, x2-x0, x3-x0] D_m^-1."""
-    ds = wp.matrix_from_cols(x1 - x0, x2 - x0, x3 - x0)
+    """F = [x1-x0, x2-x0, x3-x0] D_m^-1 of tet e, its vertices read at positions[offset + vertex]."""
+    x0 = positions[offset + tets[e, 0]]
+    ds = wp.matrix_from_cols(
+        positions[offset + tets[e, 1]] - x0,
+        positions[offset + tets[e, 2]] - x0,
+        positions[offset + tets[e, 3]] - x0,
+    )
     return ds * rest_inverse
+
+
+@wp.func
+def principal_stretches(F: wp.mat33d):
+    """SVD F = U diag(s) V^T (U, V rotations; s may have a negative last entry when det F < 0)."""
+    U = wp.mat33d()
+    s = wp.vec3d()
+    V = wp.mat33d()
+    wp.svd3(F, U, s, V)
+    return U, s, V
 
 
 @wp.func
@@ -67,25 +86,6 @@ def corotated_principal_stress(sigma: wp.vec3d, mu: f64, lam: f64) -> wp.vec3d:
         two * mu * (sigma[1] - one) + lam * jm1 * sigma[0] * sigma[2],
         two * mu * (sigma[2] - one) + lam * jm1 * sigma[0] * sigma[1],
     )
-
-
-@wp.func
-def first_piola_stress(F: wp.mat33d, mu: f64, lam: f64) -> wp.mat33d:
-    """P = U diag(Psi_i) V^T [Pa]."""
-    U = wp.mat33d()
-    s = wp.vec3d()
-    V = wp.mat33d()
-    wp.svd3(F, U, s, V)
-    return U * wp.diag(corotated_principal_stress(s, mu, lam)) * wp.transpose(V)
-
-
-@wp.func
-def cauchy_stress(F: wp.mat33d, mu: f64, lam: f64) -> wp.mat33d:
-    """sigma = P F^T / J, symmetrized against round-off [Pa]."""
-    P = first_piola_stress(F, mu, lam)
-    j = wp.determinant(F)
-    s = P * wp.transpose(F) / j
-    return f64(0.5) * (s + wp.transpose(s))
 
 
 @wp.func
@@ -140,17 +140,8 @@ def elastic_energy_kernel(
     if active[b] == 0:
         return
     o = b * num_vertices
-    F = tet_deformation_gradient(
-        positions[o + tets[e, 0]],
-        positions[o + tets[e, 1]],
-        positions[o + tets[e, 2]],
-        positions[o + tets[e, 3]],
-        rest_inverse[e],
-    )
-    U = wp.mat33d()
-    s = wp.vec3d()
-    V = wp.mat33d()
-    wp.svd3(F, U, s, V)
+    F = tet_deformation_gradient(positions, tets, o, e, rest_inverse[e])
+    U, s, V = principal_stretches(F)
     wp.atomic_add(energy, b, rest_volume[e] * corotated_energy_density(s, mu[b], lam[b]))
 
 
@@ -183,17 +174,8 @@ def elastic_gradient_hessian_kernel(
     o = b * num_vertices
     B = rest_inverse[e]
     vol = rest_volume[e]
-    F = tet_deformation_gradient(
-        positions[o + tets[e, 0]],
-        positions[o + tets[e, 1]],
-        positions[o + tets[e, 2]],
-        positions[o + tets[e, 3]],
-        B,
-    )
-    U = wp.mat33d()
-    s = wp.vec3d()
-    V = wp.mat33d()
-    wp.svd3(F, U, s, V)
+    F = tet_deformation_gradient(positions, tets, o, e, B)
+    U, s, V = principal_stretches(F)
     m = mu[b]
     l = lam[b]
     one = f64(1.0)
@@ -276,17 +258,8 @@ def tet_stress_kernel(
     """Per (problem, tet): Cauchy stress, strain energy V_e Psi (summed per problem), inverted flag."""
     b, e = wp.tid()
     o = b * num_vertices
-    F = tet_deformation_gradient(
-        positions[o + tets[e, 0]],
-        positions[o + tets[e, 1]],
-        positions[o + tets[e, 2]],
-        positions[o + tets[e, 3]],
-        rest_inverse[e],
-    )
-    U = wp.mat33d()
-    s = wp.vec3d()
-    V = wp.mat33d()
-    wp.svd3(F, U, s, V)
+    F = tet_deformation_gradient(positions, tets, o, e, rest_inverse[e])
+    U, s, V = principal_stretches(F)
     j = s[0] * s[1] * s[2]
     P = U * wp.diag(corotated_principal_stress(s, mu[b], lam[b])) * wp.transpose(V)
     sig = P * wp.transpose(F) / j

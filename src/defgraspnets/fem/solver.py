@@ -489,21 +489,7 @@ class QuasiStaticSolver:
                 ck.contact_energy_kernel,
                 dim=(B, self.num_surface, self.num_bodies),
                 inputs=[
-                    positions,
-                    self._positions_ref,
-                    travel,
-                    self._surface,
-                    self._area,
-                    self._size,
-                    self._youngs,
-                    float(self.options.contact_stiffness),
-                    float(self.options.contact_smoothing),
-                    self._bodies,
-                    self._lag_force,
-                    self._lag_normal,
-                    self._stick_stretch,
-                    N,
-                    D,
+                    *self._contact_inputs(positions, travel),
                     active,
                     e,
                 ],
@@ -551,21 +537,7 @@ class QuasiStaticSolver:
                 ck.contact_gradient_hessian_kernel,
                 dim=(B, self.num_surface, self.num_bodies),
                 inputs=[
-                    self._positions,
-                    self._positions_ref,
-                    self._travel,
-                    self._surface,
-                    self._area,
-                    self._size,
-                    self._youngs,
-                    float(self.options.contact_stiffness),
-                    float(self.options.contact_smoothing),
-                    self._bodies,
-                    self._lag_force,
-                    self._lag_normal,
-                    self._stick_stretch,
-                    N,
-                    D,
+                    *self._contact_inputs(self._positions, self._travel),
                     self._blocks,
                     active,
                     sysm.gradient,
@@ -582,6 +554,26 @@ class QuasiStaticSolver:
         sysm.constrain(self._free, self._diag_shift)
         return fscale.numpy().copy(), lscale.numpy().copy()
 
+    def _contact_inputs(self, positions, travel) -> list:
+        """The leading arguments shared by every contact kernel (see ``contact.py``)."""
+        return [
+            positions,
+            self._positions_ref,
+            travel,
+            self._surface,
+            self._area,
+            self._size,
+            self._youngs,
+            float(self.options.contact_stiffness),
+            float(self.options.contact_smoothing),
+            self._bodies,
+            self._lag_force,
+            self._lag_normal,
+            self._stick_stretch,
+            self.mesh.num_vertices,
+            self.num_dofs,
+        ]
+
     def _contact_state(self, positions, travel):
         if not self.num_bodies:
             return
@@ -589,21 +581,7 @@ class QuasiStaticSolver:
             ck.contact_state_kernel,
             dim=(self.batch_size, self.num_surface, self.num_bodies),
             inputs=[
-                positions,
-                self._positions_ref,
-                travel,
-                self._surface,
-                self._area,
-                self._size,
-                self._youngs,
-                float(self.options.contact_stiffness),
-                float(self.options.contact_smoothing),
-                self._bodies,
-                self._lag_force,
-                self._lag_normal,
-                self._stick_stretch,
-                self.mesh.num_vertices,
-                self.num_dofs,
+                *self._contact_inputs(positions, travel),
                 self._c_force,
                 self._c_normal,
                 self._c_gap,
@@ -625,14 +603,17 @@ class QuasiStaticSolver:
         delta = mu * (np.abs(nf - lf) + nf * np.linalg.norm(nn - ln, axis=1))
         return np.where(mask, delta.reshape(self.batch_size, -1).max(axis=1), 0.0)
 
-    def _relag_friction(self, mask: np.ndarray) -> np.ndarray:
-        """Lagged normal forces and normals <- current ones, for the problems in ``mask``.
-
-        Returns per problem the largest change of a contact's friction force capacity this makes,
-        max mu (|N - N_lag| + N |n - n_lag|) [N] (0 where nothing changed or there is no friction)."""
-        change = np.zeros(self.batch_size)
+    def _relag_friction(self, mask: np.ndarray):
+        """Lagged normal forces and normals <- current ones, for the problems in ``mask``."""
         if not self.num_bodies or not np.any(self._friction[mask] > 0):
-            return change
+            return
+        self._contact_state(self._positions, self._travel)
+        m = np.repeat(mask, self.num_surface * self.num_bodies)  # slot order (b, s, k)
+        lf, ln = self._lag_force.numpy(), self._lag_normal.numpy()
+        lf[m] = self._c_force.numpy()[m]
+        ln[m] = self._c_normal.numpy()[m]
+        self._lag_force.assign(lf)
+        self._lag_normal.assign(ln)
         self._contact_state(self._positions, self._travel)
         S, K = self.num_surface, self.num_bodies
         m = np.repeat(mask, S * K)
@@ -1017,21 +998,8 @@ class QuasiStaticSolver:
                 ck.commit_stick_stretch_kernel,
                 dim=(self.batch_size, self.num_surface, self.num_bodies),
                 inputs=[
-                    self._positions,
-                    self._positions_ref,
-                    self._travel,
-                    self._surface,
-                    self._area,
-                    self._size,
-                    self._youngs,
-                    float(self.options.contact_stiffness),
-                    self._bodies,
-                    self._lag_force,
-                    self._lag_normal,
-                    self.mesh.num_vertices,
-                    self.num_dofs,
+                    *self._contact_inputs(self._positions, self._travel),
                     m,
-                    self._stick_stretch,
                 ],
                 device=self.device,
             )
