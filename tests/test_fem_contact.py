@@ -52,6 +52,25 @@ def test_uniaxial_compression_between_frictionless_planes(E):
     assert eq.max_penetration[0] <= 1.05 * bound
 
 
+def test_increment_stabilization_is_reported_and_small():
+    """The stabilization springs tie vertices to the increment's start: the answer moves by about the
+    spring force over the load, and that force is reported; off by default."""
+    E, force = 1e5, 2.0
+    mesh, plain = _squeeze_box(E, force)
+    _, stabilized = _squeeze_box(E, force, stabilization=1e-4)
+    plain.require_converged()
+    stabilized.require_converged()
+    assert plain.stabilization_force[0] == 0.0
+    f_stab = stabilized.stabilization_force[0]
+    assert 0.0 < f_stab < 1e-3 * force
+    # the deformation (the frictionless box's lateral position is free, so compare uz and the stress)
+    uz_plain, uz_stab = plain.displacement[0][:, 2], stabilized.displacement[0][:, 2]
+    assert 0.0 < np.abs(uz_stab - uz_plain).max() < 3e-3 * np.abs(uz_plain).max()
+    np.testing.assert_allclose(stabilized.von_mises[0], plain.von_mises[0], rtol=3e-3)
+    with pytest.raises(ValueError, match="stabilization"):
+        fem.SolverOptions(stabilization=-1.0)
+
+
 def test_finger_meshes_squeeze_like_planes():
     """Two triangle-mesh pads sharing one force-controlled dof (a parallel-jaw gripper) = two planes."""
     E, force = 2e5, 0.08

@@ -168,3 +168,42 @@ def external_gradient_kernel(
         F = dof_force[b * num_dofs + r - num_vertices]
         gradient[b * R + r] = gradient[b * R + r] - wp.vec3d(F, f64(0.0), f64(0.0))
         wp.atomic_max(load_scale, b, wp.abs(F))
+
+
+@wp.kernel
+def stabilization_energy_kernel(
+    q: wp.array(dtype=wp.vec3d),
+    q_ref: wp.array(dtype=wp.vec3d),
+    coefficient: wp.array(dtype=wp.float64),
+    num_vertices: int,
+    rows_per_problem: int,
+    active: wp.array(dtype=wp.int32),
+    energy: wp.array(dtype=wp.float64),
+):
+    """energy[b] += c_i |u_i - u_ref_i|^2 / 2: the increment stabilization spring of vertex i."""
+    b, v = wp.tid()
+    if active[b] == 0:
+        return
+    d = q[b * rows_per_problem + v] - q_ref[b * rows_per_problem + v]
+    wp.atomic_add(energy, b, f64(0.5) * coefficient[b * num_vertices + v] * wp.dot(d, d))
+
+
+@wp.kernel
+def stabilization_gradient_kernel(
+    q: wp.array(dtype=wp.vec3d),
+    q_ref: wp.array(dtype=wp.vec3d),
+    coefficient: wp.array(dtype=wp.float64),
+    num_vertices: int,
+    rows_per_problem: int,
+    active: wp.array(dtype=wp.int32),
+    gradient: wp.array(dtype=wp.vec3d),
+    stabilization_force: wp.array(dtype=wp.float64),
+):
+    """gradient_i += c_i (u_i - u_ref_i); stabilization_force[b] = max_i |c_i (u_i - u_ref_i)|."""
+    b, v = wp.tid()
+    if active[b] == 0:
+        return
+    i = b * rows_per_problem + v
+    f = coefficient[b * num_vertices + v] * (q[i] - q_ref[i])
+    gradient[i] = gradient[i] + f
+    wp.atomic_max(stabilization_force, b, wp.length(f))

@@ -50,6 +50,9 @@ class Equilibrium:
     max_penetration: np.ndarray  # (B,) deepest penetration into any body [m]
     reaction_force: np.ndarray  # (B, N, 3) support force on fixed vertices [N] (zero elsewhere)
     tet_stress: np.ndarray | None = None  # (B, M, 3, 3) Cauchy stress per tet [Pa] (if recorded)
+    # (B,) largest vertex force of the increment stabilization at the last converged increment [N]
+    # (SolverOptions.stabilization; zero when off)
+    stabilization_force: np.ndarray | None = None
     extras: dict = field(default_factory=dict)
 
     @property

@@ -76,6 +76,13 @@ class SolverOptions:
         escape_fraction: object motion within one increment, as a fraction of the diagonal, that flags
             the problem ESCAPED (no equilibrium).
         regularization: diagonal shift relative to E h per vertex (removes floating rigid modes).
+        stabilization: increment stabilization ``s`` (0: off): every vertex is tied to its position at the
+            start of the load increment by a spring ``c_i = s E h_i`` (``h_i`` the vertex size), energy
+            ``c_i |u_i - u_ref_i|^2 / 2``. It makes the first increments of a grasp well posed while the
+            contacts that will hold the object are still points with no friction capacity (a pad tilted
+            against an edge or corner: the object's rigid modes are otherwise free and Newton's steps
+            along them unbounded). The price is a spurious force ``c_i (u_i - u_ref_i)`` at equilibrium;
+            its largest value is reported as ``Equilibrium.stabilization_force`` (compare it with the loads).
         query_distance: search radius [m] of triangle-mesh bodies' signed distance queries.
         record_tet_stress: keep the per-tet Cauchy stress in results (B x M x 9 floats).
     """
@@ -93,6 +100,7 @@ class SolverOptions:
     max_friction_relags: int = 8
     escape_fraction: float = 0.5
     regularization: float = 1e-10
+    stabilization: float = 0.0
     query_distance: float = 1.0
     record_tet_stress: bool = False
 
@@ -101,6 +109,8 @@ class SolverOptions:
             raise ValueError(
                 f"linear_solver must be 'auto', 'cg', 'amg' or 'direct', got {self.linear_solver!r}"
             )
+        if not (np.isfinite(self.stabilization) and self.stabilization >= 0):
+            raise ValueError(f"SolverOptions.stabilization must be >= 0, got {self.stabilization!r}")
         for name in ("contact_stiffness", "rtol", "cg_rtol", "max_step_fraction", "escape_fraction"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"SolverOptions.{name} must be > 0, got {getattr(self, name)!r}")
@@ -334,6 +344,7 @@ class QuasiStaticSolver:
         self._energy = wp.zeros(B, dtype=wp.float64, device=dev)
         self._scratch = [wp.zeros(B, dtype=wp.float64, device=dev) for _ in range(5)]
         self._step = wp.zeros(B, dtype=wp.float64, device=dev)
+        self._stabilization_force = wp.zeros(B, dtype=wp.float64, device=dev)
 
         # current loads and targets (host), and sticky status
         self._masses = mesh.vertex_masses(1.0)  # per unit density, scaled by each problem's density
@@ -362,6 +373,9 @@ class QuasiStaticSolver:
         shift = np.zeros((self.batch_size, self.rows_per_problem, 3))
         scale = self.options.regularization * self._youngs_np[:, None] * self.mesh.vertex_size[None, :]
         shift[:, :N, :] = scale[:, :, None]
+        stab = self.options.stabilization * self._youngs_np[:, None] * self.mesh.vertex_size[None, :]
+        shift[:, :N, :] += stab[:, :, None]
+        self._stabilization = wp.array(stab.reshape(-1), dtype=wp.float64, device=dev)
         if D:
             shift[:, N:, 0] = self.options.regularization * self._youngs_np[:, None] * self.mesh.diameter
         self._diag_shift = wp.array(shift.reshape(-1, 3), dtype=wp.vec3d, device=dev)
@@ -447,6 +461,7 @@ class QuasiStaticSolver:
         self._dof_target[:] = 0.0
         self._prescribed[:] = 0.0
         self.status[:] = SolveStatus.CONVERGED
+        self._stabilization_at_convergence = np.zeros(self.batch_size)
         self._unpack(self._q, self._positions, self._travel)
         self._unpack(self._q_ref, self._positions_ref, self._travel_ref)
         self._commit_body_reference(np.ones(self.batch_size, dtype=bool))
@@ -501,6 +516,13 @@ class QuasiStaticSolver:
             inputs=[q, self._nodal_force, self._dof_force, N, D, active, e],
             device=self.device,
         )
+        if self.options.stabilization > 0:
+            wp.launch(
+                kk.stabilization_energy_kernel,
+                dim=(B, N),
+                inputs=[q, self._q_ref, self._stabilization, N, self.rows_per_problem, active, e],
+                device=self.device,
+            )
         return e.numpy().copy()
 
     def _assemble(self, active) -> tuple[np.ndarray, np.ndarray]:
@@ -551,6 +573,23 @@ class QuasiStaticSolver:
             inputs=[self._nodal_force, self._dof_force, N, D, active, sysm.gradient, lscale],
             device=self.device,
         )
+        if self.options.stabilization > 0:
+            self._stabilization_force.zero_()
+            wp.launch(
+                kk.stabilization_gradient_kernel,
+                dim=(B, N),
+                inputs=[
+                    self._q,
+                    self._q_ref,
+                    self._stabilization,
+                    N,
+                    self.rows_per_problem,
+                    active,
+                    sysm.gradient,
+                    self._stabilization_force,
+                ],
+                device=self.device,
+            )
         sysm.constrain(self._free, self._diag_shift)
         return fscale.numpy().copy(), lscale.numpy().copy()
 
@@ -840,6 +879,9 @@ class QuasiStaticSolver:
                     res[b0],
                     o.rtol * scale[b0] + atol[b0],
                 )
+            if o.stabilization > 0 and conv.any():
+                stab = self._stabilization_force.numpy()
+                self._stabilization_at_convergence[conv] = stab[conv]
             ok |= conv
             working &= ~conv
             if not working.any():
@@ -1114,4 +1156,5 @@ class QuasiStaticSolver:
             max_penetration=max_pen,
             reaction_force=reaction,
             tet_stress=ts,
+            stabilization_force=self._stabilization_at_convergence.copy(),
         )
