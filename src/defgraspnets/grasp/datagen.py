@@ -51,6 +51,7 @@ __all__ = [
     "generate_object_shards",
     "gripper_fingers",
     "load_object_mesh",
+    "resolve_object_mesh",
     "shard_grasp_indices",
     "structured_box",
 ]
@@ -91,6 +92,42 @@ def load_object_mesh(
     model = get_object(name)
     mesh = tet_mesh(name, target_nodes=target_nodes, mesher=mesher, cache_dir=cache_dir)
     return mesh, model.category, model.source
+
+
+_TET_SUFFIXES = (".vtu", ".vtk", ".msh", ".mesh", ".xdmf")
+
+
+def resolve_object_mesh(
+    spec: str,
+    box_size=(0.03, 0.03, 0.03),
+    box_divisions=(4, 4, 4),
+    target_nodes: int = 1000,
+    mesher: str = "ftetwild",
+    cache_dir=None,
+) -> fem.TetMesh:
+    """The tet mesh named by ``spec``: ``"box"`` (:func:`structured_box`), a registry object name, a tet
+    mesh file (``.vtu``, ``.vtk``, ``.msh``, ...; read with meshio), or a closed surface file (``.obj``,
+    ``.stl``, ``.ply``, ...; tetrahedralized to about ``target_nodes`` vertices, cached), in metres.
+
+    Raises:
+        FileNotFoundError: ``spec`` looks like a path but no file is there.
+        ValueError: neither a registry name nor a file.
+    """
+    if spec == "box":
+        return structured_box(box_size, box_divisions)
+    path = Path(spec)
+    if path.suffix:
+        if not path.is_file():
+            raise FileNotFoundError(f"no object mesh file at {path}")
+        if path.suffix.lower() in _TET_SUFFIXES:
+            return fem.TetMesh.load(path, name=path.stem)
+        import trimesh
+
+        from defgraspnets.objects import tetrahedralize
+
+        surface = trimesh.load(path, force="mesh")
+        return tetrahedralize(surface, target_nodes, mesher, cache_dir=cache_dir, name=path.stem)
+    return load_object_mesh(spec, target_nodes, mesher, cache_dir)[0]
 
 
 def structured_box(size=(0.03, 0.03, 0.03), divisions=(4, 4, 4), name: str | None = None) -> fem.TetMesh:

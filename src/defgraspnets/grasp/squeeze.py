@@ -48,8 +48,11 @@ def pad_shape(gripper: ParallelJawGripper = FRANKA_HAND) -> fem.RoundedBox:
 
 
 def finger_contact_poses(grasps: GraspSet, gripper: ParallelJawGripper = FRANKA_HAND) -> np.ndarray:
-    """(G, 2, 4, 4) finger frames (object frame) with each pad at first contact."""
-    openings = grasps.finger_openings(gripper)
+    """(G, 2, 4, 4) finger frames (object frame) with each pad at first contact.
+
+    ``grasps``: a :class:`GraspSet`, or anything with ``poses`` (G, 4, 4) of the open gripper and
+    ``closing_distances`` (G, 2) [m] (e.g. grasps refined by the planner)."""
+    openings = gripper.opening_from_closing(grasps.closing_distances)
     return np.stack([gripper.finger_poses(p, q) for p, q in zip(grasps.poses, openings)])
 
 
@@ -79,7 +82,7 @@ def make_squeeze_solver(
     ``options`` default to :func:`squeeze_solver_options`."""
     if options is None:
         options = squeeze_solver_options()
-    if len(grasps) == 0:
+    if len(grasps.poses) == 0:
         raise ValueError("no grasps to simulate")
     pad = pad_shape(gripper)
     # in the finger frame the contact face normal, i.e. the closing direction, is +y
@@ -88,7 +91,7 @@ def make_squeeze_solver(
         for name in FINGER_NAMES
     ]
     solver = fem.QuasiStaticSolver(
-        mesh, bodies, material, batch_size=len(grasps), device=device, options=options
+        mesh, bodies, material, batch_size=len(grasps.poses), device=device, options=options
     )
     poses = finger_contact_poses(grasps, gripper)
     for i, name in enumerate(FINGER_NAMES):

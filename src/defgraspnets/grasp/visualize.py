@@ -12,7 +12,7 @@ import numpy as np
 
 from defgraspnets.data.grasp_schema import GraspShard
 
-__all__ = ["GraspSample", "load_sample", "render_sample", "export_sample_vtu"]
+__all__ = ["GraspSample", "draw_grasp", "export_sample_vtu", "load_sample", "render_sample"]
 
 
 class GraspSample:
@@ -78,14 +78,12 @@ def render_sample(sample: GraspSample, path: str | Path, exaggeration: float | N
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     size = float(np.ptp(sample.points, axis=0).max())
     if exaggeration is None:
         biggest = float(sample.deformation.max())
         exaggeration = max(1.0, 0.1 * size / biggest) if biggest > 0 else 1.0
     x = (sample.points + exaggeration * sample.displacement) * 1e3  # [mm]
-    tris = x[sample.surface_faces]
     panels = (
         ("von Mises stress [kPa]", sample.von_mises / 1e3, "viridis"),
         ("deformation |u| [mm]", sample.deformation * 1e3, "magma"),
@@ -93,21 +91,9 @@ def render_sample(sample: GraspSample, path: str | Path, exaggeration: float | N
     fig = plt.figure(figsize=(11, 5))
     for i, (label, field, cmap) in enumerate(panels):
         ax = fig.add_subplot(1, 2, i + 1, projection="3d")
-        face_value = field[sample.surface_faces].mean(axis=1)
-        norm = matplotlib.colors.Normalize(float(field.min()), float(field.max()) or 1.0)
-        colors = matplotlib.colormaps[cmap](norm(face_value))
-        ax.add_collection3d(Poly3DCollection(tris, facecolors=colors, edgecolors="none"))
-        for fingers in sample.finger_vertices * 1e3:
-            pad = Poly3DCollection(fingers[sample.finger_faces], facecolors=(0.6, 0.6, 0.65, 0.35))
-            ax.add_collection3d(pad)
-        everything = np.concatenate([x, *(sample.finger_vertices * 1e3)])
-        mid, span = (everything.max(0) + everything.min(0)) / 2, np.ptp(everything, axis=0).max() / 2
-        for setter, m in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), mid):
-            setter(m - span, m + span)
-        ax.set_xlabel("x [mm]")
-        ax.set_ylabel("y [mm]")
-        ax.set_zlabel("z [mm]")
-        mappable = matplotlib.cm.ScalarMappable(norm=norm, cmap=cmap)
+        mappable = draw_grasp(
+            ax, x, sample.surface_faces, field, sample.finger_vertices * 1e3, sample.finger_faces, cmap
+        )
         fig.colorbar(mappable, ax=ax, shrink=0.6, pad=0.1, label=label)
     fig.suptitle(f"{sample.title}  (displacements x{exaggeration:.3g})")
     path = Path(path)
@@ -115,6 +101,32 @@ def render_sample(sample: GraspSample, path: str | Path, exaggeration: float | N
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def draw_grasp(
+    ax, points_mm, surface_faces, field, finger_vertices_mm, finger_faces, cmap="viridis", norm=None
+):
+    """Draw an object surface coloured by a vertex ``field`` and the finger pads on a 3-D axis (equal
+    aspect, millimetres). Returns the ScalarMappable of the colours (for a colour bar)."""
+    import matplotlib
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    field = np.asarray(field, dtype=np.float64)
+    if norm is None:
+        norm = matplotlib.colors.Normalize(float(field.min()), float(field.max()) or 1.0)
+    face_value = field[surface_faces].mean(axis=1)
+    colors = matplotlib.colormaps[cmap](norm(face_value))
+    ax.add_collection3d(Poly3DCollection(points_mm[surface_faces], facecolors=colors, edgecolors="none"))
+    for fingers in finger_vertices_mm:
+        ax.add_collection3d(Poly3DCollection(fingers[finger_faces], facecolors=(0.6, 0.6, 0.65, 0.35)))
+    everything = np.concatenate([points_mm, *finger_vertices_mm])
+    mid, span = (everything.max(0) + everything.min(0)) / 2, np.ptp(everything, axis=0).max() / 2
+    for setter, m in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), mid):
+        setter(m - span, m + span)
+    ax.set_xlabel("x [mm]")
+    ax.set_ylabel("y [mm]")
+    ax.set_zlabel("z [mm]")
+    return matplotlib.cm.ScalarMappable(norm=norm, cmap=cmap)
 
 
 def export_sample_vtu(sample: GraspSample, path: str | Path) -> tuple[Path, Path]:

@@ -30,6 +30,7 @@ from collections.abc import Iterable
 
 import torch
 from torch import Tensor, nn
+from torch.utils.checkpoint import checkpoint
 from tqdm.auto import tqdm
 
 from defgraspnets.data.normalization import Normalizer, TargetScaling
@@ -137,12 +138,19 @@ class EncodeProcessDecode(nn.Module):
         self.contact_encoder = MLP(contact_edge_dim, latent, latent, hidden_layers)
         self.blocks = nn.ModuleList(ProcessorBlock(latent, hidden_layers) for _ in range(num_blocks))
         self.decoder = MLP(latent, out_dim, latent, hidden_layers, layer_norm=False)
+        # activation checkpointing: with gradients on, keep only each block's inputs and recompute its
+        # intermediate activations in the backward pass (memory ~ L x latents instead of L x MLP layers)
+        self.activation_checkpointing = False
 
     def forward(self, node: Tensor, mesh: Tensor, contact: Tensor, mesh_index: Tensor, contact_index: Tensor):
         """(n, node_dim), (E_M, ·), (E_C, ·) normalized features -> (n, out_dim)."""
         h, m, c = self.node_encoder(node), self.mesh_encoder(mesh), self.contact_encoder(contact)
+        recompute = self.activation_checkpointing and torch.is_grad_enabled()
         for block in self.blocks:
-            h, m, c = block(h, m, c, mesh_index, contact_index)
+            if recompute:
+                h, m, c = checkpoint(block, h, m, c, mesh_index, contact_index, use_reentrant=False)
+            else:
+                h, m, c = block(h, m, c, mesh_index, contact_index)
         return self.decoder(h)
 
 

@@ -127,6 +127,8 @@ class DefGraspNetsPredictor:
         precision: ``"fp32"``; ``"bf16"`` runs the encode-process-decode networks in bfloat16 (graph
             features, normalization and outputs stay fp32; for fast GPU scoring); ``"fp64"`` everything.
         compile: ``torch.compile`` the networks (dynamic shapes; the first calls compile).
+        activation_checkpointing: recompute each message-passing block's activations in the backward pass
+            instead of storing them (forward + backward of many grasps at once, e.g. batched refinement).
     """
 
     def __init__(
@@ -137,6 +139,7 @@ class DefGraspNetsPredictor:
         contact_backend: str = "auto",
         precision: str = "fp32",
         compile: bool = False,
+        activation_checkpointing: bool = False,
     ):
         if not net.normalized:
             raise ValueError("the network has no normalization statistics (not trained)")
@@ -148,6 +151,8 @@ class DefGraspNetsPredictor:
             self.net.double()
         elif precision == "bf16":
             self.net.networks.to(torch.bfloat16)
+        for network in self.net.networks:
+            network.activation_checkpointing = bool(activation_checkpointing)
         if compile:
             for network in self.net.networks:
                 network.compile(dynamic=True)

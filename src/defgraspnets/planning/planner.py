@@ -1,0 +1,365 @@
+r"""Grasp planning with DefGraspNets (thesis §7.5): batched scoring of sampled grasps and gradient-based
+refinement of grasp poses.
+
+A grasp is the pose ``T`` (4, 4) of the *fully open* gripper in the object frame. Everything the network
+needs follows from ``T`` differentiably:
+
+1. finger joint states ``c(T)`` (2,): each finger closes from fully open until it first touches the
+   object, computed analytically from the object's surface (``grasp.gripper.finger_closing_distances``);
+2. finger pads at first contact, ``T_f = T T_open,f`` moved by ``c_f`` along their closing directions,
+   and the multigraph with contact edges rebuilt from the pads' positions (``models.predictor``);
+3. predicted stress and displacement at grasp force ``F_g``, and the objective ``Q`` (:mod:`.objectives`).
+
+Sampling mode ranks G poses by ``Q`` in batched forward passes. Refinement mode takes gradient steps in the
+pose's local coordinates ``xi = (v / l, omega)`` (:mod:`.pose`; ``l`` = ``translation_scale`` makes metres and
+radians commensurate), all grasps in one batch:
+
+    d = -grad_xi L / |grad_xi L|,       L = +-Q (minimize / maximize)
+    backtracking (Armijo): alpha = alpha_0, alpha_0 / 2, ...  until  L(xi + alpha d) <= L - c alpha |grad L|
+    annealing: if no step length passes, the shortest trial is still accepted with probability
+               exp(-(L_trial - L) / theta_k),  theta_k = theta_0 |L_0| decay^k  (simulated annealing)
+
+A trial pose is *feasible* only if both fingers reach the object within their travel, the multigraph has
+contact edges, Q is finite, and (optionally) the open gripper does not collide with the object. Each grasp
+returns the best feasible pose it visited, so refinement never returns a worse grasp than it was given.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from defgraspnets.fem.mesh import TetMesh
+from defgraspnets.grasp.gripper import FRANKA_HAND, ParallelJawGripper, finger_closing_distances
+from defgraspnets.models.predictor import DefGraspNetsPredictor, FingerGeometry, GraspFieldPrediction
+
+from .objectives import GraspObjective
+from .pose import perturb_pose
+
+__all__ = ["GraspEvaluation", "GraspPlanner", "RefinementResult", "gripper_finger_geometry"]
+
+# acceptance codes of a refinement step
+REJECTED, ARMIJO, ANNEALED = 0, 1, 2
+
+
+def gripper_finger_geometry(gripper: ParallelJawGripper = FRANKA_HAND) -> FingerGeometry:
+    """The finger pads as the predictor sees them: pad mesh in the finger frame, closing axis +y, finger
+    frames of the fully open gripper (same convention as the grasp datasets)."""
+    v, f = gripper.pad_mesh
+    return FingerGeometry(np.array(v), np.array(f), np.array([0.0, 1.0, 0.0]), gripper.finger_transforms())
+
+
+@dataclass
+class GraspEvaluation:
+    """Q and feasibility of G grasp poses.
+
+    Attributes:
+        q: (G,) objective values (units of the objective). loss: (G,) ``+-q`` (what is minimized).
+        closing_distance: (G, 2) finger joint states [m]. touches: (G, 2) whether each finger reaches the
+        object. contact_edges: (G,) contact pairs in the multigraph. feasible: (G,) all checks passed
+        (collision only if checked). prediction: the predicted fields (kept only on request).
+    """
+
+    q: Tensor
+    loss: Tensor
+    closing_distance: Tensor
+    touches: Tensor
+    contact_edges: Tensor
+    feasible: Tensor
+    prediction: GraspFieldPrediction | None = None
+
+
+@dataclass
+class RefinementResult:
+    """Outcome of :meth:`GraspPlanner.refine` for G grasps over K steps.
+
+    Attributes:
+        poses: (G, 4, 4) best feasible pose visited. q: (G,) its objective value. closing_distance: (G, 2)
+        its finger joint states (exact minimum, as the simulator needs them). initial_q: (G,) Q of the input
+        poses. q_history: (K + 1, G) Q of the current iterate after each step. accepted: (K, G) step codes
+        (0 rejected, 1 Armijo step, 2 accepted by annealing). sense: ``"minimize"`` or ``"maximize"``.
+        seconds: wall time.
+    """
+
+    poses: np.ndarray
+    q: np.ndarray
+    closing_distance: np.ndarray
+    initial_q: np.ndarray
+    q_history: np.ndarray
+    accepted: np.ndarray
+    sense: str
+    seconds: float
+    translation: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (G,) |t - t_0| [m]
+    rotation: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (G,) angle of R_0^T R [rad]
+
+
+class GraspPlanner:
+    """Scores and refines parallel-jaw grasps of one object with a trained DefGraspNets predictor.
+
+    Args:
+        predictor: the network (any device / precision).
+        mesh: the object's tet mesh in the object frame [m].
+        youngs_modulus: E [Pa]. force: grasp force F_g [N] at which Q is evaluated.
+        objective: the :class:`GraspObjective`.
+        gripper: gripper geometry (finger pads, travel, collision boxes).
+        closing_temperature: soft-min temperature [m] of the finger joint states (None: exact minimum,
+            piecewise-smooth in T; a small value, e.g. 1e-4, spreads gradients over nearly-touching points).
+        batch_size: grasps per forward pass (None: all at once).
+        check_collisions: refinement rejects poses where the open gripper overlaps the object.
+    """
+
+    def __init__(
+        self,
+        predictor: DefGraspNetsPredictor,
+        mesh: TetMesh,
+        youngs_modulus: float,
+        objective: GraspObjective,
+        force: float = 15.0,
+        gripper: ParallelJawGripper = FRANKA_HAND,
+        closing_temperature: float | None = None,
+        batch_size: int | None = None,
+        check_collisions: bool = True,
+    ):
+        if not isinstance(mesh, TetMesh):
+            raise TypeError(f"mesh must be a TetMesh, got {type(mesh).__name__}")
+        if not (math.isfinite(youngs_modulus) and youngs_modulus > 0):
+            raise ValueError(f"youngs_modulus must be a positive modulus [Pa], got {youngs_modulus!r}")
+        if not (math.isfinite(force) and force > 0):
+            raise ValueError(f"force must be a positive grasp force [N], got {force!r}")
+        if batch_size is not None and batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1 or None, got {batch_size}")
+        self.predictor = predictor
+        self.mesh = mesh
+        self.youngs_modulus = float(youngs_modulus)
+        self.force = float(force)
+        self.objective = objective
+        self.gripper = gripper
+        self.closing_temperature = closing_temperature
+        self.batch_size = batch_size
+        self.check_collisions = check_collisions
+        self.fingers = gripper_finger_geometry(gripper)
+        self.template = predictor.object_template(mesh)
+        # the object's surface (vertices renumbered) for the finger joint states
+        surf = mesh.surface_vertices
+        remap = np.full(mesh.num_vertices, -1, dtype=np.int64)
+        remap[surf] = np.arange(len(surf))
+        self.surface_faces = remap[mesh.surface_faces]
+        self.surface_points_np = mesh.points[surf]
+        self.surface_points = torch.as_tensor(
+            self.surface_points_np, dtype=predictor.dtype, device=predictor.device
+        )
+
+    @property
+    def device(self) -> torch.device:
+        return self.predictor.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.predictor.dtype
+
+    def _poses(self, poses) -> Tensor:
+        T = torch.as_tensor(poses, dtype=self.dtype, device=self.device)
+        if T.ndim != 3 or T.shape[1:] != (4, 4):
+            raise ValueError(f"poses must have shape (G, 4, 4), got {tuple(T.shape)}")
+        if not bool(torch.isfinite(T).all()):
+            raise ValueError("poses contain NaN or inf")
+        R = T[:, :3, :3].detach()
+        eye = torch.eye(3, dtype=T.dtype, device=T.device)
+        err = (R.transpose(1, 2) @ R - eye).abs().amax().item() if len(T) else 0.0
+        if err > 1e-4:
+            raise ValueError(f"poses must hold rotations (|R^T R - I| up to {err:.2g})")
+        return T
+
+    # ------------------------------------------------------------------ evaluation
+    def closing_distances(self, poses, exact: bool = True) -> tuple[Tensor, Tensor]:
+        """Finger joint states (G, 2) [m] and contact flags (G, 2) of poses (G, 4, 4) (differentiable)."""
+        T = self._poses(poses) if not torch.is_tensor(poses) else poses
+        return finger_closing_distances(
+            self.surface_points,
+            T,
+            self.gripper,
+            faces=self.surface_faces,
+            temperature=None if exact else self.closing_temperature,
+        )
+
+    def evaluate(self, poses, grad: bool = False, keep_prediction: bool = False) -> GraspEvaluation:
+        """Q of G poses (G, 4, 4) in batches of ``batch_size`` (differentiable with ``grad=True``)."""
+        T = poses if torch.is_tensor(poses) and poses.requires_grad else self._poses(poses)
+        parts = []
+        step = self.batch_size or max(len(T), 1)
+        for start in range(0, len(T), step):
+            parts.append(self._evaluate_batch(T[start : start + step], grad, keep_prediction))
+        if len(parts) == 1:
+            return parts[0]
+        cat = {
+            k: torch.cat([getattr(p, k) for p in parts])
+            for k in GraspEvaluation.__dataclass_fields__
+            if k != "prediction"
+        }
+        pred = None
+        if keep_prediction:
+            pred = GraspFieldPrediction(
+                *(
+                    torch.cat([getattr(p.prediction, k) for p in parts])
+                    for k in ("stress", "displacement", "contact_edges")
+                )
+            )
+        return GraspEvaluation(**cat, prediction=pred)
+
+    def _evaluate_batch(self, T: Tensor, grad: bool, keep_prediction: bool) -> GraspEvaluation:
+        with torch.set_grad_enabled(grad):
+            closing, touches = self.closing_distances(T, exact=False)
+            pred = self.predictor.predict(
+                self.template,
+                self.force,
+                self.youngs_modulus,
+                grad=grad,
+                fingers=self.fingers,
+                gripper_pose=T,
+                closing_distance=closing,
+            )
+            q = self.objective(pred.stress, pred.displacement)
+            loss = self.objective.sign * q
+        feasible = touches.all(-1) & (pred.contact_edges > 0) & torch.isfinite(q.detach())
+        return GraspEvaluation(
+            q, loss, closing, touches, pred.contact_edges, feasible, pred if keep_prediction else None
+        )
+
+    def collides(self, poses) -> np.ndarray:
+        """(G,) whether the fully open gripper at poses (G, 4, 4) overlaps the object."""
+        T = poses.detach().cpu().numpy() if torch.is_tensor(poses) else np.asarray(poses)
+        return self.gripper.collides((self.surface_points_np, self.surface_faces), T.astype(np.float64))
+
+    # ------------------------------------------------------------------ sampling mode
+    @torch.no_grad()
+    def score(self, poses) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Q (G,), feasibility (G,) and the ranking (indices, best first; infeasible grasps last)."""
+        ev = self.evaluate(poses)
+        q = ev.q.detach().cpu().double().numpy()
+        feasible = ev.feasible.cpu().numpy()
+        key = np.where(feasible, self.objective.sign * q, np.inf)
+        return q, feasible, np.argsort(key, kind="stable")
+
+    # ------------------------------------------------------------------ refinement mode
+    def refine(
+        self,
+        poses,
+        steps: int = 12,
+        sense: str | None = None,
+        step_size: float = 0.2,
+        translation_scale: float = 0.01,
+        max_backtracks: int = 4,
+        armijo: float = 1e-4,
+        temperature: float = 0.05,
+        temperature_decay: float = 0.7,
+        seed: int | None = 0,
+        progress: bool = False,
+    ) -> RefinementResult:
+        """Refine G grasp poses (G, 4, 4) together (see the module docstring).
+
+        Args:
+            steps: gradient steps (thesis: 12). sense: override the objective's ``"minimize"``/``"maximize"``.
+            step_size: first trial step alpha_0 in local units (translation ``alpha_0 l`` [m], rotation
+                ``alpha_0`` [rad]). translation_scale: ``l`` [m].
+            max_backtracks: halvings of the step per iteration. armijo: sufficient-decrease constant c.
+            temperature, temperature_decay: annealing theta_0 (relative to |L| of the input) and its decay
+                per step (0 disables annealing). seed: random stream of the annealing acceptances.
+        """
+        t0 = time.perf_counter()
+        sense = sense or self.objective.sense
+        if sense not in ("minimize", "maximize"):
+            raise ValueError(f"sense must be 'minimize' or 'maximize', got {sense!r}")
+        sign = 1.0 if sense == "minimize" else -1.0
+        if steps < 0 or max_backtracks < 0 or not step_size > 0 or not translation_scale > 0:
+            raise ValueError("steps and max_backtracks must be >= 0; step_size, translation_scale > 0")
+        T = self._poses(poses).detach().clone()
+        T_start = T.clone()
+        G = len(T)
+        scale = torch.tensor([translation_scale] * 3 + [1.0] * 3, dtype=self.dtype, device=self.device)
+        gen = torch.Generator(device="cpu").manual_seed(0 if seed is None else int(seed))
+
+        ev = self.evaluate(T)
+        q_now = ev.q.detach().clone()
+        loss_now = sign * q_now
+        ok_now = ev.feasible.clone()
+        if self.check_collisions:
+            ok_now &= torch.as_tensor(~self.collides(T), device=self.device)
+        best_T, best_loss = T.clone(), torch.where(ok_now, loss_now, torch.full_like(loss_now, math.inf))
+        initial_q = q_now.clone()
+        theta0 = temperature * loss_now.abs().nan_to_num(0.0).median().clamp_min(1e-30)
+        history = [q_now.clone()]
+        accepted = []
+
+        it = range(steps)
+        if progress:
+            from tqdm.auto import tqdm
+
+            it = tqdm(it, desc=f"refine {G} grasps", unit="step", leave=False)
+        for k in it:
+            xi = torch.zeros(G, 6, dtype=self.dtype, device=self.device, requires_grad=True)
+            ev = self.evaluate(perturb_pose(T, xi * scale), grad=True)
+            (sign * ev.q).sum().backward()
+            g = xi.grad.detach()
+            gnorm = g.norm(dim=1)
+            movable = ok_now & torch.isfinite(gnorm) & (gnorm > 0)
+            direction = -g / gnorm.clamp_min(torch.finfo(g.dtype).tiny)[:, None]
+            alpha = torch.full((G,), step_size, dtype=self.dtype, device=self.device)
+            code = torch.zeros(G, dtype=torch.long, device=self.device)
+            pending = movable.clone()
+            last = {}  # grasp -> (pose, q, feasible) of the shortest trial
+            for _ in range(max_backtracks + 1):
+                idx = torch.nonzero(pending).squeeze(1)
+                if idx.numel() == 0:
+                    break
+                with torch.no_grad():
+                    trial = perturb_pose(T[idx], (alpha[idx, None] * direction[idx]) * scale)
+                    tev = self.evaluate(trial)
+                feasible = tev.feasible.clone()
+                if self.check_collisions:
+                    feasible &= torch.as_tensor(~self.collides(trial), device=self.device)
+                t_loss = sign * tev.q.detach()
+                decrease = t_loss <= loss_now[idx] - armijo * alpha[idx] * gnorm[idx]
+                success = feasible & decrease
+                win = idx[success]
+                T[win], q_now[win], loss_now[win] = trial[success], tev.q.detach()[success], t_loss[success]
+                code[win] = ARMIJO
+                pending[win] = False
+                last = {"idx": idx, "trial": trial, "q": tev.q.detach(), "loss": t_loss, "feasible": feasible}
+                alpha[idx[~success]] *= 0.5
+            # simulated annealing: the shortest trial of grasps without an Armijo step
+            if temperature > 0 and last:
+                idx, theta = last["idx"], theta0 * temperature_decay**k
+                still = pending[idx] & last["feasible"]
+                rise = (last["loss"] - loss_now[idx]).clamp_min(0.0)
+                u = torch.rand(len(idx), generator=gen, dtype=torch.float64).to(self.device, self.dtype)
+                take = still & (u < torch.exp(-rise / theta))
+                win = idx[take]
+                T[win], q_now[win], loss_now[win] = last["trial"][take], last["q"][take], last["loss"][take]
+                code[win] = ANNEALED
+            improved = (code > 0) & (loss_now < best_loss)
+            best_T[improved], best_loss[improved] = T[improved], loss_now[improved]
+            history.append(q_now.clone())
+            accepted.append(code.cpu().numpy())
+
+        with torch.no_grad():
+            closing, _ = self.closing_distances(best_T, exact=True)
+            final = self.evaluate(best_T)
+        R0, R1 = T_start[:, :3, :3], best_T[:, :3, :3]
+        cos = (((R0.transpose(1, 2) @ R1).diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2).clamp(-1, 1)
+        return RefinementResult(
+            poses=best_T.cpu().double().numpy(),
+            q=final.q.detach().cpu().double().numpy(),
+            closing_distance=closing.detach().cpu().double().numpy(),
+            initial_q=initial_q.cpu().double().numpy(),
+            q_history=torch.stack(history).cpu().double().numpy(),
+            accepted=np.array(accepted, dtype=np.int8).reshape(steps, G),
+            sense=sense,
+            seconds=time.perf_counter() - t0,
+            translation=(best_T[:, :3, 3] - T_start[:, :3, 3]).norm(dim=1).cpu().double().numpy(),
+            rotation=torch.arccos(cos).cpu().double().numpy(),
+        )
