@@ -50,6 +50,10 @@ class Equilibrium:
     max_penetration: np.ndarray  # (B,) deepest penetration into any body [m]
     reaction_force: np.ndarray  # (B, N, 3) support force on fixed vertices [N] (zero elsewhere)
     tet_stress: np.ndarray | None = None  # (B, M, 3, 3) Cauchy stress per tet [Pa] (if recorded)
+    # gas pressure (solvers with a pressure surface only)
+    gauge_pressure: np.ndarray | None = None  # (B,) p(V) of the cavity [Pa]
+    cavity_volume: np.ndarray | None = None  # (B,) V of the pressurized cavity (without V_h) [m^3]
+    pressure_force: np.ndarray | None = None  # (B, N, 3) lumped gas force on each vertex, -p A n / 3 [N]
     extras: dict = field(default_factory=dict)
 
     @property
