@@ -71,3 +71,16 @@ def sphere_octant_mesh(radius: float, pole_size: float, far_size: float, grading
 
     field = f"min({far_size}, {pole_size} + {grading}*Sqrt(x*x+y*y+(z-{radius})*(z-{radius})))"
     return gmsh_tet_mesh(build, field, "octant")
+
+
+def thick_shell_octant_mesh(inner_radius: float, outer_radius: float, size: float):
+    """The x, y, z >= 0 eighth of a thick-walled hollow sphere, uniform element size [m]."""
+
+    def build(occ):
+        s = occ.addSphere(0, 0, 0, outer_radius)
+        hole = occ.addSphere(0, 0, 0, inner_radius)
+        shell = occ.cut([(3, s)], [(3, hole)])[0]
+        box = occ.addBox(0, 0, 0, 2 * outer_radius, 2 * outer_radius, 2 * outer_radius)
+        occ.intersect(shell, [(3, box)])
+
+    return gmsh_tet_mesh(build, f"{size}", "shell_octant")

@@ -3,7 +3,8 @@
 A deformable object (linear tetrahedra, fixed co-rotated elasticity) in frictional contact with
 rigid bodies (planes, spheres, capsules, triangle meshes) that are fixed, displacement-controlled or
 force-controlled along one axis, under body loads (gravity, d'Alembert loads of an accelerating
-frame), solved to equilibrium by Newton's method for many problems at once, on CPU or CUDA.
+frame) and gas pressure in a cavity (fixed, or a closed isothermal gas), solved to equilibrium by
+Newton's method for many problems at once, on CPU or CUDA.
 
 Example::
 
@@ -23,6 +24,7 @@ from .bodies import BodyError, Capsule, Control, Plane, RigidBody, RoundedBox, S
 from .loads import STANDARD_GRAVITY, BodyLoad
 from .material import Material, MaterialError
 from .mesh import MeshError, TetMesh
+from .pressure import STANDARD_ATMOSPHERE, PressureLoad, PressureSurface
 from .results import Equilibrium, SolveStatus
 from .solver import QuasiStaticSolver, SolverOptions
 
@@ -36,9 +38,12 @@ __all__ = [
     "MaterialError",
     "MeshError",
     "Plane",
+    "PressureLoad",
+    "PressureSurface",
     "QuasiStaticSolver",
     "RigidBody",
     "RoundedBox",
+    "STANDARD_ATMOSPHERE",
     "STANDARD_GRAVITY",
     "SolveStatus",
     "SolverOptions",

@@ -53,6 +53,10 @@ class Equilibrium:
     # (B,) largest vertex force of the increment stabilization at the last converged increment [N]
     # (SolverOptions.stabilization; zero when off)
     stabilization_force: np.ndarray | None = None
+    # gas pressure (solvers with a pressure surface only)
+    gauge_pressure: np.ndarray | None = None  # (B,) p(V) of the cavity [Pa]
+    cavity_volume: np.ndarray | None = None  # (B,) V of the pressurized cavity (without V_h) [m^3]
+    pressure_force: np.ndarray | None = None  # (B, N, 3) lumped gas force on each vertex, -p A n / 3 [N]
     extras: dict = field(default_factory=dict)
 
     @property

@@ -3,15 +3,16 @@
 Every problem minimizes the incremental potential over the vertex displacements u and the travels of
 its force-controlled bodies,
 
-    Pi(u, t) = sum_e V_e Psi(F_e) + sum_contacts [E_n + D] - sum_i f_i . u_i - sum_d F_d t_d,
+    Pi(u, t) = sum_e V_e Psi(F_e) + sum_contacts [E_n + D] - sum_i f_i . u_i - sum_d F_d t_d - G(V(u)),
 
-(elasticity, penalty contact, lagged Coulomb friction, dead body loads, prescribed actuator forces;
-see elasticity.py, contact.py, loads.py). Its stationary points are the equilibria: elastic forces
-balance contact, friction and body forces, and each force-controlled body presses with its
-prescribed force.
+(elasticity, penalty contact, lagged Coulomb friction, dead body loads, prescribed actuator forces,
+gas pressure on a cavity of volume V; see elasticity.py, contact.py, loads.py, pressure.py). Its
+stationary points are the equilibria: elastic forces balance contact, friction, body and pressure
+forces, and each force-controlled body presses with its prescribed force.
 
 Newton's method: assemble the gradient and the positive semi-definite Hessian, solve H du = -g with
-a Krylov solver (batched block-Jacobi CG, Warp) or a sparse direct solver, then an Armijo
+a Krylov solver (batched block-Jacobi CG, Warp) or a sparse direct solver (a closed gas cavity adds a
+dense rank-one term, applied by Sherman-Morrison with a second solve), then an Armijo
 backtracking line search on Pi per problem, with the step capped so no vertex moves more than a
 fraction of the object size per iteration. A tiny diagonal shift handles floating rigid modes
 without changing the solution. The friction normal forces and normals are re-lagged at every
@@ -37,10 +38,12 @@ import warp as wp
 from . import contact as ck
 from . import elasticity as ek
 from . import kernels as kk
+from . import pressure as pk
 from .bodies import SHAPE_KIND, BodyError, RigidBody, TriangleMesh, check_rigid_transform
 from .loads import BodyLoad
 from .material import Material
 from .mesh import TetMesh
+from .pressure import PressureLoad, PressureSurface
 from .results import Equilibrium, SolveStatus
 from .system import BatchedSystem, BlockPattern
 
@@ -154,6 +157,8 @@ class QuasiStaticSolver:
         fixed: Dirichlet constraints: vertex indices (all components fixed) or an (N, 3) bool mask.
         device: Warp device ("cpu", "cuda", "cuda:0", ...); default: Warp's default device.
         options: :class:`SolverOptions`.
+        pressure_surface: optional :class:`PressureSurface`, the triangles a gas presses on; its gas law
+            per problem is given to :meth:`solve` (``pressure=``, default: no pressure).
 
     Per-problem settings: :meth:`set_material`, :meth:`set_body_pose`, :meth:`set_friction`; loads and
     targets are given to :meth:`solve` (they persist, so the next call continues from them).
@@ -168,6 +173,7 @@ class QuasiStaticSolver:
         fixed=None,
         device=None,
         options: SolverOptions | None = None,
+        pressure_surface: PressureSurface | None = None,
     ):
         wp.init()
         if not isinstance(mesh, TetMesh):
@@ -318,6 +324,37 @@ class QuasiStaticSolver:
         ba.query_distance = float(self.options.query_distance)
         self._bodies = ba
 
+        # ---------------- gas pressure on a cavity (pressure.py)
+        self.pressure_surface = pressure_surface
+        if pressure_surface is not None:
+            if not isinstance(pressure_surface, PressureSurface):
+                raise TypeError(
+                    f"pressure_surface must be a PressureSurface, got {type(pressure_surface).__name__}"
+                )
+            pf = pressure_surface.faces
+            if pf.min() < 0 or pf.max() >= N:
+                raise ValueError(f"pressure_surface face indices must lie in [0, {N})")
+            pairs = [(pf[:, i], pf[:, j]) for i in range(3) for j in range(3)]
+            blocks = [self.pattern.block_index(r, c) for r, c in pairs]
+            if any(np.any(k < 0) for k in blocks):
+                raise ValueError(
+                    "pressure_surface faces must be triangles of the mesh (their edges tet edges)"
+                )
+            self._pressure_faces = wp.array(pf, dtype=wp.int32, device=dev)
+            self._pressure_blocks = wp.array(np.stack(blocks, axis=1), dtype=wp.int32, device=dev)
+            self._pressure_point = wp.vec3d(*pressure_surface.reference_point)
+            self.rest_cavity_volume = pressure_surface.volume(mesh.points)
+            if not self.rest_cavity_volume + pressure_surface.external_volume > 0:
+                raise ValueError(
+                    f"the pressurized cavity has rest volume {self.rest_cavity_volume:.4g} m^3 (plus "
+                    f"external {pressure_surface.external_volume:.4g} m^3): faces must point into the gas"
+                )
+        self._gas_law = np.zeros((B, 2))  # per problem p0 [Pa], C [J]
+        self._gas_pressure = wp.zeros(B, dtype=wp.float64, device=dev)
+        self._gas_k = np.zeros(B)  # -dp/dV at the last assembly
+        self._volume_gradient = wp.zeros(B * R, dtype=wp.vec3d, device=dev)
+        self._volume_sum = wp.zeros(B, dtype=wp.float64, device=dev)
+
         # ---------------- per-problem state (q packs u and the travels, B * R rows)
         self._q = wp.zeros(B * R, dtype=wp.vec3d, device=dev)
         self._q_ref = wp.zeros_like(self._q)
@@ -351,6 +388,7 @@ class QuasiStaticSolver:
         self._load = BodyLoad()
         self._dof_target = np.zeros((B, D))
         self._prescribed = np.zeros((B, N, 3))
+        self._gas_target = np.zeros((B, 2))  # requested gas law (p0, C) per problem
         self.status = np.zeros(B, dtype=np.int32)
         self.set_material(material if material is not None else Material(1e6))
         self._update_bodies()
@@ -460,6 +498,8 @@ class QuasiStaticSolver:
         self._load = BodyLoad()
         self._dof_target[:] = 0.0
         self._prescribed[:] = 0.0
+        self._gas_law[:] = 0.0
+        self._gas_target[:] = 0.0
         self.status[:] = SolveStatus.CONVERGED
         self._stabilization_at_convergence = np.zeros(self.batch_size)
         self._unpack(self._q, self._positions, self._travel)
@@ -523,7 +563,108 @@ class QuasiStaticSolver:
                 inputs=[q, self._q_ref, self._stabilization, N, self.rows_per_problem, active, e],
                 device=self.device,
             )
-        return e.numpy().copy()
+        energy = e.numpy().copy()
+        if self.pressure_surface is not None:
+            dv = self._cavity_volume_change(positions)
+            work = pk.gas_work(
+                self._gas_law, dv, self.rest_cavity_volume, self.pressure_surface.external_volume
+            )
+            energy -= np.where(active.numpy() != 0, work, 0.0)
+        return energy
+
+    def _cavity_volume_change(self, positions) -> np.ndarray:
+        """(B,) V - V0 [m^3] of the pressurized cavity at the given positions."""
+        dv = self._volume_sum
+        dv.zero_()
+        wp.launch(
+            pk.cavity_volume_change_kernel,
+            dim=(self.batch_size, len(self.pressure_surface.faces)),
+            inputs=[
+                positions,
+                self._rest,
+                self._pressure_faces,
+                self._pressure_point,
+                self.mesh.num_vertices,
+                dv,
+            ],
+            device=self.device,
+        )
+        return dv.numpy().copy()
+
+    def _assemble_pressure(self, active, load_scale):
+        """Gas pressure at the current state: gradient -p dV/dx, sparse Hessian -p d2V/dx2, and the
+        rank-one coefficient -dp/dV (``self._gas_k``, applied in the linear solve)."""
+        B, N = self.batch_size, self.mesh.num_vertices
+        vh = self.pressure_surface.external_volume
+        vol = self.rest_cavity_volume + self._cavity_volume_change(self._positions)
+        p = pk.gas_pressure(self._gas_law, vol, vh)
+        self._gas_pressure.assign(p)
+        self._gas_k = np.where(active.numpy() != 0, pk.gas_stiffness(self._gas_law, vol, vh), 0.0)
+        F = len(self.pressure_surface.faces)
+        self._volume_gradient.zero_()
+        wp.launch(
+            pk.volume_gradient_kernel,
+            dim=(B, F),
+            inputs=[self._positions, self._pressure_faces, N, self.rows_per_problem, self._volume_gradient],
+            device=self.device,
+        )
+        wp.launch(
+            pk.pressure_gradient_kernel,
+            dim=(B, N),
+            inputs=[
+                self._volume_gradient,
+                self._gas_pressure,
+                self.rows_per_problem,
+                active,
+                self.system.gradient,
+                load_scale,
+            ],
+            device=self.device,
+        )
+        wp.launch(
+            pk.pressure_hessian_kernel,
+            dim=(B, F),
+            inputs=[
+                self._positions,
+                self._pressure_faces,
+                self._pressure_point,
+                self._gas_pressure,
+                self._pressure_blocks,
+                N,
+                self.pattern.nnz,
+                active,
+                self.system.values,
+            ],
+            device=self.device,
+        )
+        return vol, p
+
+    def _gas_rank_one(self, working: np.ndarray, rtol: float) -> int:
+        """Add the gas stiffness k u u^T (u = dV/dx on free components, k = -dp/dV) to the Newton step by
+        Sherman-Morrison: with H0 x0 = r (already in ``increment``) and H0 y = u,
+
+            x = x0 - y k (u . x0) / (1 + k u . y).
+
+        Returns the Krylov iterations of the second solve."""
+        k = np.where(working, self._gas_k, 0.0)
+        if not np.any(k > 0):
+            return 0
+        B, R = self.batch_size, self.rows_per_problem
+        sysm = self.system
+        x0 = sysm.increment.numpy().reshape(B, R * 3).copy()
+        r0 = sysm.rhs.numpy().copy()
+        free = self._free.numpy()[None]
+        u = (self._volume_gradient.numpy().reshape(B, R, 3) * free).reshape(B, R * 3)
+        u[k <= 0] = 0.0
+        sysm.rhs.assign(u.reshape(-1, 3))
+        n_lin, _ = self._linear_solve(rtol)
+        y = sysm.increment.numpy().reshape(B, R * 3)
+        ux = np.einsum("bi,bi->b", u, x0)
+        uy = np.einsum("bi,bi->b", u, y)
+        coef = np.where(k > 0, k * ux / (1.0 + k * uy), 0.0)
+        sysm.increment.assign((x0 - coef[:, None] * y).reshape(-1, 3))
+        sysm.rhs.assign(r0)
+        return n_lin
 
     def _assemble(self, active) -> tuple[np.ndarray, np.ndarray]:
         """Gradient and Hessian at the current state; returns (elastic force scale, load scale)."""
@@ -590,6 +731,8 @@ class QuasiStaticSolver:
                 ],
                 device=self.device,
             )
+        if self.pressure_surface is not None:
+            self._assemble_pressure(active, lscale)
         sysm.constrain(self._free, self._diag_shift)
         return fscale.numpy().copy(), lscale.numpy().copy()
 
@@ -689,6 +832,8 @@ class QuasiStaticSolver:
             q[np.ix_(mask, N + np.nonzero(disp)[0], [0])] = targets[np.ix_(mask, np.nonzero(disp)[0])][
                 ..., None
             ]
+        law = start["pressure"] + lam[:, None] * (end["pressure"] - start["pressure"])
+        self._gas_law[mask] = law[mask]
         if self.fixed_mask.any():
             pres = start["prescribed"] + w * (end["prescribed"] - start["prescribed"])
             qv = q[:, :N]
@@ -700,7 +845,12 @@ class QuasiStaticSolver:
     def _loads_now(self) -> dict:
         masses = self._masses[None, :] * self._density_np[:, None]
         f = self._load.nodal_forces(self.mesh.points, masses, self.batch_size)
-        return {"nodal_force": f, "dof": self._dof_target.copy(), "prescribed": self._prescribed.copy()}
+        return {
+            "nodal_force": f,
+            "dof": self._dof_target.copy(),
+            "prescribed": self._prescribed.copy(),
+            "pressure": self._gas_target.copy(),
+        }
 
     # ------------------------------------------------------------------ public solve
     def solve(
@@ -709,6 +859,7 @@ class QuasiStaticSolver:
         body_load: BodyLoad | None = None,
         prescribed_displacement=None,
         initial_fraction: float = 1.0,
+        pressure: PressureLoad | None = None,
     ) -> Equilibrium:
         """Move every problem from its current loads to the given ones and return the equilibria.
 
@@ -719,6 +870,8 @@ class QuasiStaticSolver:
             prescribed_displacement: (N, 3) or (B, N, 3) displacement of the fixed components [m].
             initial_fraction: first trial increment as a fraction of the whole change (the solver halves
                 failing increments and grows successful ones on its own).
+            pressure: new :class:`PressureLoad` of the pressure surface (default: keep the current one;
+                between load increments the gas law's p0 and C are interpolated linearly).
         """
         B, N = self.batch_size, self.mesh.num_vertices
         start = self._loads_now()
@@ -737,6 +890,12 @@ class QuasiStaticSolver:
             if not np.all(np.isfinite(p)):
                 raise ValueError("prescribed_displacement must be finite")
             self._prescribed = np.array(p)
+        if pressure is not None:
+            if not isinstance(pressure, PressureLoad):
+                raise TypeError(f"pressure must be a PressureLoad, got {type(pressure).__name__}")
+            if self.pressure_surface is None:
+                raise ValueError("a pressure load needs a solver built with a pressure_surface")
+            self._gas_target = pressure.arrays(B)
         end = self._loads_now()
 
         o = self.options
@@ -748,7 +907,7 @@ class QuasiStaticSolver:
         linear_total = np.zeros(B, dtype=int)
         residual = np.zeros(B)
         change = np.concatenate(
-            [(end[k] - start[k]).reshape(B, -1) for k in ("dof", "nodal_force", "prescribed")], 1
+            [(end[k] - start[k]).reshape(B, -1) for k in ("dof", "nodal_force", "prescribed", "pressure")], 1
         )
         while todo.any():
             log.debug("load increment: fractions %s -> %s", lam_done[todo][:4], lam_try[todo][:4])
@@ -796,10 +955,14 @@ class QuasiStaticSolver:
         targets: dict | None = None,
         body_load: BodyLoad | None = None,
         progress: bool = False,
+        pressure: PressureLoad | None = None,
     ) -> list[Equilibrium]:
-        """Solve at ``steps`` evenly spaced load levels from the current loads to the given ones."""
+        """Solve at ``steps`` evenly spaced load levels from the current loads to the given ones (the gas
+        law's p0 and C in even steps too)."""
         if steps < 1:
             raise ValueError("steps must be >= 1")
+        start_gas = self._gas_target.copy()
+        end_gas = None if pressure is None else pressure.arrays(self.batch_size)
         start_targets = {n: self._dof_target[:, d].copy() for d, n in enumerate(self.dof_names)}
         start_load = self._load
         end_targets = {n: _per_problem(v, self.batch_size, n) for n, v in (targets or {}).items()}
@@ -813,7 +976,11 @@ class QuasiStaticSolver:
             frac = s / steps
             tg = {n: start_targets[n] + frac * (v - start_targets[n]) for n, v in end_targets.items()}
             bl = None if body_load is None else start_load.interpolate(body_load, frac, self.batch_size)
-            out.append(self.solve(tg, bl))
+            gas = None
+            if end_gas is not None:
+                law = start_gas + frac * (end_gas - start_gas)
+                gas = PressureLoad(gauge_pressure=law[:, 0], pv=law[:, 1])
+            out.append(self.solve(tg, bl, pressure=gas))
         return out
 
     # ------------------------------------------------------------------ Newton
@@ -906,12 +1073,9 @@ class QuasiStaticSolver:
             # safeguard: where Newton stagnates, solve exactly (CG resolves soft and runaway modes last)
             forcing[res > 0.9 * previous] = o.cg_rtol
             linear_rtol = float(forcing[working].min())
-            if self.linear_solver == "cg":
-                n_lin, _ = sysm.solve_cg(linear_rtol, o.cg_max_iterations)
-            elif self.linear_solver == "amg":
-                n_lin, _ = sysm.solve_amg(self._near_nullspace, linear_rtol, o.cg_max_iterations)
-            else:
-                n_lin, _ = sysm.solve_direct()
+            n_lin, _ = self._linear_solve(linear_rtol)
+            if self.pressure_surface is not None:
+                n_lin += self._gas_rank_one(working, linear_rtol)
             lin_iters[working] += n_lin
             failed = self._line_search(working, active, max_step)
             if log.isEnabledFor(logging.DEBUG):
@@ -940,6 +1104,15 @@ class QuasiStaticSolver:
             status[esc] = SolveStatus.ESCAPED
             working &= ~esc
         return ok, status, iters, lin_iters, residual
+
+    def _linear_solve(self, rtol: float) -> tuple[int, float]:
+        """H increment = rhs with the configured linear solver; returns (iterations, residual)."""
+        o, sysm = self.options, self.system
+        if self.linear_solver == "cg":
+            return sysm.solve_cg(rtol, o.cg_max_iterations)
+        if self.linear_solver == "amg":
+            return sysm.solve_amg(self._near_nullspace, rtol, o.cg_max_iterations)
+        return sysm.solve_direct()
 
     def _line_search(self, working: np.ndarray, active, max_step: float) -> np.ndarray:
         """Armijo backtracking on Pi per problem; updates the state. Returns per problem 0 (accepted) or
@@ -1104,6 +1277,12 @@ class QuasiStaticSolver:
         self._assemble(active)
         grad = self.system.gradient.numpy().reshape(B, self.rows_per_problem, 3)
         reaction = np.where(self.fixed_mask[None], grad[:, :N], 0.0)
+        gas = {}
+        if self.pressure_surface is not None:
+            vol = self.rest_cavity_volume + self._cavity_volume_change(self._positions)
+            p = pk.gas_pressure(self._gas_law, vol, self.pressure_surface.external_volume)
+            dv = self._volume_gradient.numpy().reshape(B, self.rows_per_problem, 3)[:, :N]
+            gas = {"gauge_pressure": p, "cavity_volume": vol, "pressure_force": p[:, None, None] * dv}
 
         q = self._q.numpy().reshape(B, self.rows_per_problem, 3)
         travel = {n: q[:, N + d, 0].copy() for d, n in enumerate(self.dof_names)}
@@ -1157,4 +1336,5 @@ class QuasiStaticSolver:
             reaction_force=reaction,
             tet_stress=ts,
             stabilization_force=self._stabilization_at_convergence.copy(),
+            **gas,
         )

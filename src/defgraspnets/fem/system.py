@@ -48,6 +48,15 @@ class BlockPattern:
     def nnz(self) -> int:
         return len(self.rows)
 
+    def block_index(self, rows, cols) -> np.ndarray:
+        """Block index (within one problem) of each pair (rows[i], cols[i]); -1 where not in the pattern."""
+        r, c = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+        n = self.rows_per_problem
+        key = self.rows.astype(np.int64) * n + self.cols
+        want = r * n + c
+        k = np.minimum(np.searchsorted(key, want), len(key) - 1)
+        return np.where(key[k] == want, k, -1).astype(np.int32)
+
     @classmethod
     def build(cls, mesh: TetMesh, num_dofs: int) -> BlockPattern:
         n = mesh.num_vertices

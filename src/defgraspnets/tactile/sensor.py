@@ -1,0 +1,368 @@
+"""The soft tactile sensor simulated with the FEM engine: inflation, indentation, depth image, wrench.
+
+The Ecoflex membrane (:mod:`defgraspnets.tactile.membrane`, clamped at its rim) is loaded by the gas
+inside the sensor and touched by one rigid indenter; every reading is a quasi-static equilibrium of
+
+    Pi(u, t) = U_elastic(u) + contact(u, t) - G(V(u)),
+
+solved by :class:`defgraspnets.fem.QuasiStaticSolver` for B indentations at once (see
+:mod:`defgraspnets.fem.pressure` for the gas potential G). The gas fills the membrane cavity
+V (inner surface closed by the rim disk) and the rigid housing V_h below the rim:
+
+- **open** capsule (regulator / free air exchange): the gauge pressure p = P - P_atm is fixed;
+- **closed** capsule (the sealed sensor): isothermal ideal gas, P (V + V_h) = PV fixed (Boyle), so
+  p(V) = PV / (V + V_h) - P_atm rises as an indenter squeezes the cavity: the closed sensor is stiffer.
+
+A :class:`~defgraspnets.tactile.membrane.PVState` (P, V) names the gas state: open uses its gauge
+pressure P - P_atm, closed its product PV (the membrane then inflates until P (V + V_h) = PV).
+
+Indentation: the indenter (sphere or capsule) moves rigidly along a unit direction d. Its depth is
+measured from first contact with the *inflated* membrane (the onset travel is found from the
+indenter's signed distance to the inflated outer surface), and it is displacement-controlled by the
+solver with Coulomb friction mu.
+
+Wrenches (sensor frame, about the sensor origin, SI): with s_i the clamp's support force on rim vertex
+i, f_i the gas force on vertex i and F_c the force the membrane exerts on the indenter,
+
+    membrane equilibrium:      sum_i s_i + sum_i f_i - F_c = 0,
+    gas resultant on membrane: sum_i f_i = p A_rim e_z      (A_rim: area enclosed by the rim loop),
+
+so the clamp reactions alone carry the gas's lift p A_rim besides the contact force. The gas presses
+on the housing with the opposite resultant (a uniformly pressurized closed container feels no net
+force or torque), so the wrench the base transmits to the robot flange, i.e. what the thesis's wrist
+F/T sensor reads,
+
+    F_base = -sum_i s_i - sum_i f_i = -F_c,
+    T_base = -sum_i x_i x (s_i + f_i) = -(torque of F_c about the origin),
+
+is the indenter's contact wrench with the opposite sign, independent of the gas pressure.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from defgraspnets import fem
+from defgraspnets.tactile.camera import PICO_FLEXX, CameraIntrinsics, DepthCamera, DepthFrame
+from defgraspnets.tactile.indenters import (
+    CapsuleIndenter,
+    IndenterError,
+    Pose,
+    SphereIndenter,
+    WorkspaceError,
+    check_workspace,
+)
+from defgraspnets.tactile.membrane import ATMOSPHERIC_PRESSURE, MembraneError, MembraneSensor, PVState
+
+__all__ = ["Indentation", "MembraneSimulator", "TactileReading"]
+
+_FAR = 10.0  # m: where idle indenters wait (never touching the membrane)
+
+
+@dataclass(frozen=True)
+class Indentation:
+    """One indentation: the indenter's pose at the start (any pose from which it moves towards the
+    membrane along ``direction``), the unit ``direction`` in the sensor frame, and the ``depth`` [m]
+    it travels beyond first contact with the inflated membrane."""
+
+    pose: Pose
+    depth: float
+    direction: tuple = (0.0, 0.0, -1.0)
+
+    def __post_init__(self):
+        if not isinstance(self.pose, Pose):
+            raise IndenterError(f"Indentation.pose must be a Pose, got {type(self.pose).__name__}")
+        if not (np.isscalar(self.depth) and np.isfinite(self.depth) and self.depth >= 0):
+            raise IndenterError(f"indentation depth must be a finite number >= 0 m, got {self.depth!r}")
+        d = np.asarray(self.direction, dtype=np.float64)
+        if d.shape != (3,) or not np.all(np.isfinite(d)) or np.linalg.norm(d) < 1e-12:
+            raise IndenterError(
+                f"indentation direction must be a finite non-zero (3,) vector, got {self.direction!r}"
+            )
+        object.__setattr__(self, "direction", tuple(d / np.linalg.norm(d)))
+
+
+@dataclass
+class TactileReading:
+    """One simulated sensor reading (sensor frame, SI units).
+
+    Attributes:
+        positions: (N, 3) deformed membrane vertex positions [m].
+        depth: the interior camera's frame of the deformed inner surface (None if not rendered).
+        contact_force: (3,) force the membrane exerts on the indenter [N].
+        base_wrench: (6,) force and torque the sensor base transmits to the flange, about the sensor
+            origin [N, N m]; equals minus the indenter's contact wrench (module docstring).
+        rim_force: (3,) force the membrane exerts on the clamp (clamp reactions only) [N]; differs from
+            the base force by the gas's lift p A_rim e_z.
+        gauge_pressure: gas gauge pressure p [Pa].
+        gas_volume: gas volume V + V_h [m^3].
+        depth_travel: indentation depth beyond first contact [m].
+        indenter_position: (3,) indenter origin at the reading [m].
+        converged: whether the equilibrium solve succeeded (if not, nothing else is an answer).
+        solve_time: wall time of the batched solve that produced it [s].
+    """
+
+    positions: np.ndarray
+    depth: DepthFrame | None
+    contact_force: np.ndarray
+    base_wrench: np.ndarray
+    rim_force: np.ndarray
+    gauge_pressure: float
+    gas_volume: float
+    depth_travel: float
+    indenter_position: np.ndarray
+    converged: bool
+    solve_time: float
+
+
+class MembraneSimulator:
+    """Quasi-static simulation of the membrane sensor under gas pressure and one rigid indenter.
+
+    Args:
+        sensor: the membrane (:func:`~defgraspnets.tactile.membrane.build_membrane`; a coarse mesh, e.g.
+            ``cap_divisions=8, layers=2``, solves in seconds on a CPU).
+        indenter: a :class:`SphereIndenter` or :class:`CapsuleIndenter` (its geometry; poses come with
+            each :class:`Indentation`).
+        gas: the gas state (:class:`PVState`) and ``closed``: sealed capsule (isothermal, PV constant)
+            or open (gauge pressure fixed).
+        batch_size: B indentations solved together.
+        friction: Coulomb coefficient between indenter and membrane.
+        intrinsics: the interior camera (default: the pico flexx, 224 x 171); None renders no image.
+        options: FEM :class:`~defgraspnets.fem.SolverOptions` (default: direct solver, rtol 1e-5: where the
+            indenter dimples the membrane, compressed elements get a PSD-projected Hessian and Newton
+            converges only linearly, so the engine's default 1e-7 costs many iterations).
+        inflation_steps: load steps of the inflation.
+
+    The membrane is inflated on construction (:attr:`reference`).
+    """
+
+    def __init__(
+        self,
+        sensor: MembraneSensor,
+        indenter: SphereIndenter | CapsuleIndenter,
+        gas: PVState,
+        closed: bool = False,
+        batch_size: int = 1,
+        friction: float = 0.5,
+        intrinsics: CameraIntrinsics | None = PICO_FLEXX,
+        options: fem.SolverOptions | None = None,
+        inflation_steps: int = 2,
+    ):
+        if not isinstance(sensor, MembraneSensor):
+            raise TypeError(f"sensor must be a MembraneSensor, got {type(sensor).__name__}")
+        if not isinstance(gas, PVState):
+            raise TypeError(f"gas must be a PVState, got {type(gas).__name__}")
+        if isinstance(indenter, SphereIndenter):
+            shape = fem.Sphere(indenter.radius)
+        elif isinstance(indenter, CapsuleIndenter):
+            # the indenter capsule's axis is its local x; the FEM body frame maps local x to it
+            shape = fem.Capsule(indenter.radius, 0.5 * indenter.length, direction=(1.0, 0.0, 0.0))
+        else:
+            raise IndenterError(
+                f"the FEM sensor supports sphere and capsule indenters, got {type(indenter).__name__}"
+            )
+        if not (np.isfinite(friction) and friction >= 0):
+            raise ValueError(f"friction must be finite and >= 0, got {friction!r}")
+        self.sensor = sensor
+        self.indenter = indenter
+        self.gas = gas
+        self.closed = bool(closed)
+        self.batch_size = int(batch_size)
+        dims = sensor.dimensions
+        body = fem.RigidBody(
+            "indenter", shape, control=fem.Control.displacement((0.0, 0.0, 1.0)), friction=float(friction)
+        )
+        self.solver = fem.QuasiStaticSolver(
+            sensor.mesh,
+            [body],
+            sensor.material,
+            batch_size=self.batch_size,
+            fixed=sensor.clamped_vertices,
+            options=options or fem.SolverOptions(linear_solver="direct", rtol=1e-5),
+            pressure_surface=fem.PressureSurface(
+                sensor.inner_faces, sensor.rim_center, external_volume=dims.housing_volume
+            ),
+        )
+        self.camera = None if intrinsics is None else DepthCamera(intrinsics)
+        self._inflation_steps = int(inflation_steps)
+        ring = sensor.mesh.points[sensor.rim_loop]
+        ring = ring[np.argsort(np.arctan2(ring[:, 1], ring[:, 0]))] - sensor.rim_center
+        #: area enclosed by the rim loop [m^2] (the gas lifts the membrane with p times it)
+        self.rim_area = float(0.5 * np.cross(ring, np.roll(ring, -1, axis=0)).sum(axis=0)[2])
+        self.reference = self._inflate()
+
+    # ------------------------------------------------------------------ gas
+    @property
+    def pressure_load(self) -> fem.PressureLoad:
+        """The FEM gas law of :attr:`gas`: fixed gauge pressure (open) or P (V + V_h) = PV (closed)."""
+        if self.closed:
+            return fem.PressureLoad.isothermal(self.gas.pv, ambient_pressure=ATMOSPHERIC_PRESSURE)
+        return fem.PressureLoad.fixed(self.gas.gauge_pressure)
+
+    def _idle_poses(self) -> np.ndarray:
+        T = np.broadcast_to(np.eye(4), (self.batch_size, 4, 4)).copy()
+        T[:, 2, 3] = _FAR
+        return T
+
+    def _inflate(self) -> TactileReading:
+        """Inflate from the neutral (free-air) membrane to the gas state, indenters far away."""
+        s = self.solver
+        s.reset()
+        s.set_body_pose("indenter", self._idle_poses())
+        t0 = time.perf_counter()
+        law = self.pressure_load.arrays(self.batch_size)
+        for k in range(1, self._inflation_steps + 1):
+            frac = k / self._inflation_steps
+            eq = s.solve(
+                targets={"indenter": 0.0},
+                pressure=fem.PressureLoad(gauge_pressure=frac * law[:, 0], pv=frac * law[:, 1]),
+            )
+        if not eq.converged.all():
+            raise MembraneError(
+                f"inflation to {self.gas!r} ({'closed' if self.closed else 'open'}) did not converge: "
+                f"{fem.SolveStatus(int(eq.status[0])).name}"
+            )
+        #: the FEM equilibrium of the inflated membrane (all problems)
+        self.inflated = eq
+        return self._readings(eq, np.zeros(self.batch_size), self._idle_poses(), time.perf_counter() - t0, 1)[
+            0
+        ]
+
+    # ------------------------------------------------------------------ indentation geometry
+    def onset_travel(self, indentation: Indentation) -> float:
+        """Travel [m] along the direction at which the indenter first touches the inflated membrane.
+
+        Bisection on m(t) = min over outer vertices of the indenter's signed distance when moved by t d
+        (negative: it already penetrates at its start pose, and backs off).
+
+        Raises:
+            WorkspaceError: the indenter is not clear of the membrane even 4 R_o back, or never touches it.
+        """
+        x = self.inflated.positions[0][self.sensor.outer_vertices]
+        d = np.asarray(indentation.direction)
+        body = self.indenter.with_pose(indentation.pose)
+
+        def gap(t):
+            return float(body.signed_distance(x - t * d).min())
+
+        # march from well outside in steps shorter than the membrane's thickness and the indenter's
+        # radius (so the body cannot pass through the shell unseen), then bisect the first bracket
+        dims = self.sensor.dimensions
+        step = 0.5 * min(dims.thickness, self.indenter.radius)
+        span = 4.0 * dims.outer_radius
+        lo = -span
+        if gap(lo) <= 0:
+            raise WorkspaceError(f"the indenter at {indentation.pose!r} is not clear of the membrane")
+        for hi in np.arange(lo + step, span + step, step):
+            if gap(hi) <= 0:
+                break
+            lo = hi
+        else:
+            raise WorkspaceError(
+                f"the indenter at {indentation.pose!r} moving along {d.tolist()} never touches the membrane"
+            )
+        for _ in range(50):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if gap(mid) > 0 else (lo, mid)
+        return 0.5 * (lo + hi)
+
+    def _body_frame(self, indentation: Indentation) -> np.ndarray:
+        """4x4 pose of the FEM body whose local z is the indentation direction (travel axis)."""
+        d = np.asarray(indentation.direction)
+        if isinstance(self.indenter, SphereIndenter):
+            return fem.bodies.frame_from_z(indentation.pose.position, d)
+        a = indentation.pose.rotation.apply([1.0, 0.0, 0.0])  # capsule axis in the sensor frame
+        if abs(np.dot(a, d)) > 1e-6:
+            raise IndenterError("a capsule indents perpendicular to its axis (its local x)")
+        T = np.eye(4)
+        T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = a, np.cross(d, a), d, indentation.pose.position
+        return T
+
+    # ------------------------------------------------------------------ indentation
+    def indent(
+        self, indentations: list[Indentation], render: bool = True, steps: int = 2
+    ) -> list[TactileReading]:
+        """Indent the inflated membrane, up to B indentations in one batched solve.
+
+        Each problem starts from the inflated state: the indenter is placed at its contact onset and
+        pushed ``depth`` further in ``steps`` equal load steps; afterwards the indenters are withdrawn
+        so the next call starts from the inflated membrane again.
+
+        Raises:
+            WorkspaceError: an indenter would reach below the clamped rim plane, or never meets the
+                membrane; IndenterError / ValueError: bad input.
+        """
+        items = list(indentations)
+        if not 1 <= len(items) <= self.batch_size:
+            raise ValueError(f"give 1 to {self.batch_size} indentations, got {len(items)}")
+        for item in items:
+            if not isinstance(item, Indentation):
+                raise TypeError(f"indentations must be Indentation instances, got {type(item).__name__}")
+        poses = self._idle_poses()
+        depth = np.zeros(self.batch_size)
+        for b, item in enumerate(items):
+            t0 = self.onset_travel(item)
+            start = Pose(item.pose.position + t0 * np.asarray(item.direction), item.pose.quaternion)
+            final = Pose(start.position + item.depth * np.asarray(item.direction), item.pose.quaternion)
+            check_workspace(self.indenter.with_pose(final), self.sensor.dimensions)
+            poses[b] = self._body_frame(Indentation(start, item.depth, item.direction))
+            depth[b] = item.depth
+        s = self.solver
+        s.set_body_pose("indenter", poses)
+        t_start = time.perf_counter()
+        for k in range(1, steps + 1):
+            eq = s.solve(targets={"indenter": depth * k / steps})
+        elapsed = time.perf_counter() - t_start
+        readings = self._readings(eq, depth, poses, elapsed, len(items), render)
+        # withdraw (the elastic state is path independent once contact is lost); re-inflate after failures
+        if eq.converged.all():
+            back = s.solve(targets={"indenter": 0.0})
+            s.set_body_pose("indenter", self._idle_poses())
+            if back.converged.all():
+                return readings
+        self._inflate()
+        return readings
+
+    # ------------------------------------------------------------------ outputs
+    def _readings(self, eq, depth, frames, elapsed, count, render=True) -> list[TactileReading]:
+        clamped = self.sensor.clamped_vertices
+        x = eq.positions
+        out = []
+        for b in range(count):
+            support = eq.reaction_force[b, clamped]  # s_i, on the membrane
+            gas = eq.pressure_force[b]  # f_i
+            on_housing = -(support.sum(axis=0) + gas.sum(axis=0))
+            torque = -(np.cross(x[b, clamped], support).sum(axis=0) + np.cross(x[b], gas).sum(axis=0))
+            frame = None
+            if render and self.camera is not None and eq.converged[b]:
+                frame = self.camera.render(*self.sensor.inner_surface(x[b]), noisy=False)
+            out.append(
+                TactileReading(
+                    positions=x[b].copy(),
+                    depth=frame,
+                    contact_force=eq.body_force["indenter"][b].copy(),
+                    base_wrench=np.concatenate([on_housing, torque]),
+                    rim_force=-support.sum(axis=0),
+                    gauge_pressure=float(eq.gauge_pressure[b]),
+                    gas_volume=float(eq.cavity_volume[b] + self.sensor.dimensions.housing_volume),
+                    depth_travel=float(depth[b]),
+                    indenter_position=frames[b, :3, 3] + depth[b] * frames[b, :3, 2],
+                    converged=bool(eq.converged[b]),
+                    solve_time=elapsed,
+                )
+            )
+        return out
+
+    def reference_depth(self) -> DepthFrame:
+        """The camera's noise-free frame of the inflated membrane (the pre-contact reference image)."""
+        if self.camera is None:
+            raise ValueError("this simulator has no camera (intrinsics=None)")
+        return self.camera.render(*self.sensor.inner_surface(self.reference.positions), noisy=False)
+
+    def pole_indentation(self, depth: float, pose_offset=(0.0, 0.0)) -> Indentation:
+        """A vertical indentation (direction -z) above the point ``pose_offset`` (x, y) [m] of the pole."""
+        top = self.sensor.dimensions.outer_pole[2] + 0.05
+        return Indentation(Pose((pose_offset[0], pose_offset[1], top)), depth, (0.0, 0.0, -1.0))

@@ -1,0 +1,131 @@
+"""The membrane sensor on the FEM engine: inflation, pole indentation, wrench balance, closed capsule."""
+
+import numpy as np
+import pytest
+
+from defgraspnets.tactile.camera import PICO_FLEXX
+from defgraspnets.tactile.indenters import IndenterError, Pose, SphereIndenter, WorkspaceError
+from defgraspnets.tactile.membrane import ATMOSPHERIC_PRESSURE, PVState, build_membrane
+from defgraspnets.tactile.sensor import Indentation, MembraneSimulator
+
+GAUGE = 2000.0  # Pa: inflates the coarse membrane by ~5 mm at the pole
+SPHERE = SphereIndenter(radius=0.01)  # the 20 mm contact sphere of thesis §2.3
+
+
+@pytest.fixture(scope="module")
+def sensor():
+    return build_membrane(cap_divisions=8, layers=2)
+
+
+def _gas(sensor, gauge=GAUGE):
+    return PVState(ATMOSPHERIC_PRESSURE + gauge, sensor.cavity_volume + sensor.dimensions.housing_volume)
+
+
+@pytest.fixture(scope="module")
+def open_sim(sensor):
+    return MembraneSimulator(
+        sensor,
+        SPHERE,
+        _gas(sensor),
+        closed=False,
+        batch_size=2,
+        friction=0.5,
+        intrinsics=PICO_FLEXX.scaled(0.25),
+    )
+
+
+def _pole_height(sensor, positions):
+    return positions[sensor.inner_vertices, 2].max()
+
+
+def test_small_inflation_obeys_clapeyron_and_lifts_the_rim_by_p_times_its_area(sensor):
+    p = 100.0  # Pa: linear regime
+    sim = MembraneSimulator(sensor, SPHERE, _gas(sensor, p), batch_size=1, intrinsics=None)
+    eq, ref = sim.inflated, sim.reference
+    dv = eq.cavity_volume[0] - sensor.cavity_volume
+    rise = _pole_height(sensor, ref.positions) - _pole_height(sensor, sensor.mesh.points)
+    assert dv > 0 and rise > 0
+    # Clapeyron: elastic energy = (1/2) p dV for a linear response
+    assert eq.strain_energy[0] == pytest.approx(0.5 * p * dv, rel=0.02)
+    # the gas lifts the membrane with p A_rim; the clamp holds it down; nothing reaches the base
+    np.testing.assert_allclose(ref.rim_force, [0, 0, p * sim.rim_area], atol=1e-6 * p * sim.rim_area)
+    assert sim.rim_area == pytest.approx(np.pi * sensor.dimensions.inner_radius**2, rel=0.02)
+    assert np.abs(ref.base_wrench).max() < 1e-6 * p * sim.rim_area
+    assert ref.gauge_pressure == p
+    # the pole rise grows with pressure (same sensor, 20x the pressure)
+    big = MembraneSimulator(sensor, SPHERE, _gas(sensor, 20 * p), batch_size=1, intrinsics=None).reference
+    assert _pole_height(sensor, big.positions) - _pole_height(sensor, sensor.mesh.points) > 15 * rise
+
+
+@pytest.mark.slow
+def test_pole_indentation_is_axisymmetric_balanced_and_stiffening(open_sim, sensor):
+    depths = (0.004, 0.008)
+    readings = open_sim.indent([open_sim.pole_indentation(d) for d in depths])
+    fz = []
+    for r, d in zip(readings, depths):
+        assert r.converged and r.depth_travel == d
+        f = r.contact_force  # on the indenter: the membrane pushes it up
+        fz.append(f[2])
+        assert f[2] > 0
+        # axisymmetric: no lateral force and no torque (up to the mesh's triangulation)
+        assert np.hypot(f[0], f[1]) < 0.05 * f[2]
+        assert np.linalg.norm(r.base_wrench[3:]) < 0.05 * f[2] * sensor.dimensions.outer_pole[2]
+        # global equilibrium (to the solver's tolerance, 1e-5 of the largest force per component, summed
+        # over the vertices): the base transmits minus the contact wrench ...
+        np.testing.assert_allclose(r.base_wrench[:3], -f, rtol=0, atol=1e-3 * f[2])
+        # ... while the clamp alone also carries the gas's lift p A_rim e_z
+        gas_lift = np.array([0.0, 0.0, r.gauge_pressure * open_sim.rim_area])
+        np.testing.assert_allclose(r.rim_force, -f + gas_lift, rtol=0, atol=1e-3 * f[2])
+        # torque of the contact about the origin = minus the base torque
+        c = r.indenter_position
+        assert (
+            np.abs(np.cross(c, f) + r.base_wrench[3:]).max() < 0.2 * np.linalg.norm(r.base_wrench[3:]) + 1e-4
+        )
+        # the camera sees the pole move towards it by about the indentation depth
+        h, w = r.depth.depth.shape
+        centre = (slice(h // 2 - 1, h // 2 + 1), slice(w // 2 - 1, w // 2 + 1))
+        shift = np.nanmean(open_sim.reference_depth().depth[centre]) - np.nanmean(r.depth.depth[centre])
+        assert 0.5 * d < shift < 1.2 * d
+    assert fz[1] > 1.5 * fz[0]  # force grows with depth
+    # the next call starts from the inflated membrane again
+    again = open_sim.indent([open_sim.pole_indentation(depths[0])])[0]
+    np.testing.assert_allclose(again.contact_force, readings[0].contact_force, rtol=1e-3, atol=1e-4)
+
+
+@pytest.mark.slow
+def test_closed_capsule_is_stiffer_than_open(sensor, open_sim):
+    closed = MembraneSimulator(sensor, SPHERE, _gas(sensor), closed=True, batch_size=1, intrinsics=None)
+    # sealed at the same PV: it inflates less than the regulated one (its pressure drops as it grows)
+    assert 0 < closed.reference.gauge_pressure < GAUGE
+    # so seal it at the open sensor's inflated state: same starting shape and pressure
+    sealed_pv = (ATMOSPHERIC_PRESSURE + GAUGE) * open_sim.reference.gas_volume
+    sealed = MembraneSimulator(
+        sensor,
+        SPHERE,
+        PVState.from_pv(sealed_pv, open_sim.reference.gas_volume),
+        closed=True,
+        intrinsics=None,
+    )
+    assert sealed.reference.gauge_pressure == pytest.approx(GAUGE, rel=1e-3)
+    d = 0.008
+    f_open = open_sim.indent([open_sim.pole_indentation(d)], render=False)[0]
+    f_closed = sealed.indent([sealed.pole_indentation(d)], render=False)[0]
+    assert f_closed.converged and f_closed.gauge_pressure > GAUGE  # squeezed gas
+    assert f_closed.gauge_pressure == pytest.approx(sealed_pv / f_closed.gas_volume - ATMOSPHERIC_PRESSURE)
+    # the squeezed gas adds stiffness (a few % here: 8 mm displace little of the sensor's 1.1 l of gas)
+    assert f_closed.contact_force[2] > 1.02 * f_open.contact_force[2]
+
+
+def test_bad_indentations_are_rejected(open_sim):
+    with pytest.raises(WorkspaceError, match="rim"):
+        open_sim.indent([open_sim.pole_indentation(0.2)])  # would push the sphere below the clamped rim
+    with pytest.raises(IndenterError):
+        Pose((0.0, np.nan, 0.3))
+    with pytest.raises(IndenterError, match="depth"):
+        Indentation(Pose((0, 0, 0.3)), -0.001)
+    with pytest.raises(IndenterError, match="direction"):
+        Indentation(Pose((0, 0, 0.3)), 0.001, (0.0, 0.0, 0.0))
+    with pytest.raises(WorkspaceError, match="never touches"):
+        open_sim.indent([Indentation(Pose((0.3, 0.0, 0.3)), 0.001)])  # misses the sensor
+    with pytest.raises(ValueError, match="1 to 2"):
+        open_sim.indent([open_sim.pole_indentation(0.001)] * 3)
