@@ -176,6 +176,21 @@ def test_gradient_matches_central_differences(predictor64, box, grasps):
     np.testing.assert_allclose(grad, fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max())
 
 
+def test_activation_checkpointing_gives_the_same_gradient(predictor64, box, grasps):
+    planner = GraspPlanner(predictor64, box, 2e5, PRESETS["min_mean_deformation"])
+    T0 = torch.as_tensor(grasps.poses[:3])
+    grads = []
+    for flag in (False, True):
+        for network in predictor64.net.networks:
+            network.activation_checkpointing = flag
+        xi = torch.zeros(3, 6, dtype=torch.float64, requires_grad=True)
+        planner.evaluate(perturb_pose(T0, xi), grad=True).q.sum().backward()
+        grads.append(xi.grad.clone())
+    for network in predictor64.net.networks:
+        network.activation_checkpointing = False
+    torch.testing.assert_close(grads[0], grads[1], rtol=1e-10, atol=0.0)
+
+
 def test_score_ranks_by_objective_and_puts_infeasible_last(predictor64, box, grasps):
     poses = grasps.poses.copy()
     poses[3, :3, 3] += [0.5, 0.0, 0.0]  # half a metre away: no finger reaches the object
