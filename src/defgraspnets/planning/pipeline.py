@@ -247,7 +247,7 @@ def plan_grasps(
             "verification: %.0f %% of threshold grasps hit (low %.0f %%, high %.0f %%); "
             "%d of %d FEM ramps failed",
             100 * hits["hit_rate"], 100 * hits["low_hits"], 100 * hits["high_hits"],
-            hits["failed"] + int((~sim.converged[len(sampled_true):]).sum()), len(batch),
+            int((~sim.converged).sum()), len(batch),
         )  # fmt: skip
 
     write_json(out / "plan.json", report)

@@ -290,6 +290,7 @@ class GraspPlanner:
         if self.check_collisions:
             ok_now &= torch.as_tensor(~self.collides(T), device=self.device)
         best_T, best_loss = T.clone(), torch.where(ok_now, loss_now, torch.full_like(loss_now, math.inf))
+        best_q = q_now.clone()
         initial_q = q_now.clone()
         theta0 = temperature * loss_now.abs().nan_to_num(0.0).median().clamp_min(1e-30)
         history = [q_now.clone()]
@@ -342,18 +343,21 @@ class GraspPlanner:
                 T[win], q_now[win], loss_now[win] = last["trial"][take], last["q"][take], last["loss"][take]
                 code[win] = ANNEALED
             improved = (code > 0) & (loss_now < best_loss)
-            best_T[improved], best_loss[improved] = T[improved], loss_now[improved]
+            best_T[improved], best_loss[improved], best_q[improved] = (
+                T[improved],
+                loss_now[improved],
+                q_now[improved],
+            )
             history.append(q_now.clone())
             accepted.append(code.cpu().numpy())
 
         with torch.no_grad():
             closing, _ = self.closing_distances(best_T, exact=True)
-            final = self.evaluate(best_T)
         R0, R1 = T_start[:, :3, :3], best_T[:, :3, :3]
         cos = (((R0.transpose(1, 2) @ R1).diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2).clamp(-1, 1)
         return RefinementResult(
             poses=best_T.cpu().double().numpy(),
-            q=final.q.detach().cpu().double().numpy(),
+            q=best_q.cpu().double().numpy(),
             closing_distance=closing.detach().cpu().double().numpy(),
             initial_q=initial_q.cpu().double().numpy(),
             q_history=torch.stack(history).cpu().double().numpy(),
