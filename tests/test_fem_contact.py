@@ -253,3 +253,74 @@ def test_capsule_indenter_pushes_along_its_normal():
     eq.require_converged()
     np.testing.assert_allclose(eq.body_force["arm"][0], [0, 0, 0.5], atol=1e-6)
     assert eq.travel["arm"][0] > 0
+
+
+def _clamped_block_under_a_press(mu, normal_force):
+    """Block clamped at its base, a force-controlled frictional plane pressing on its top face."""
+    mesh = fem.TetMesh.box(size=(L, L, L), divisions=(3, 3, 3), origin=(-L / 2, -L / 2, 0))
+    press = fem.RigidBody(
+        "press",
+        fem.Plane(point=(0, 0, 0), normal=(0, 0, -1)),
+        control=fem.Control.force((0, 0, -1)),
+        friction=mu,
+    )
+    base = np.nonzero(mesh.points[:, 2] < 1e-12)[0]
+    solver = fem.QuasiStaticSolver(mesh, [press], fem.Material(1e5, 0.3, 1000.0), fixed=base, device="cpu")
+    solver.set_body_pose("press", _translation((0, 0, L)))
+    solver.solve(targets={"press": normal_force}).require_converged()
+    return mesh, solver
+
+
+def _friction_wrench(eq, mesh, name):
+    """Total friction force and its torque about the z axis exerted by the object on body ``name``."""
+    f = -eq.contact_friction_force[name][0]  # on the body
+    x = eq.positions[0][mesh.surface_vertices]
+    return f.sum(axis=0), np.cross(x, f).sum(axis=0)[2]
+
+
+def test_a_body_moved_along_a_path_drags_sticking_contacts_and_slips_at_mu_n():
+    mu, normal = 0.5, 1.0
+    mesh, solver = _clamped_block_under_a_press(mu, normal)
+    top = np.nonzero(mesh.points[:, 2] > L - 1e-12)[0]
+    # small shear: the contacts stick, the top face follows the press, friction resists below mu N
+    small = 0.02 * L
+    eq = solver.solve(body_poses={"press": _translation((small, 0, L))})
+    eq.require_converged()
+    force, _ = _friction_wrench(eq, mesh, "press")
+    assert -mu * normal < force[0] < -0.05 * mu * normal  # opposes the motion (+x), below the Coulomb limit
+    assert abs(force[1]) < 0.1 * abs(force[0])  # (the tet split of the box is not mirror symmetric)
+    assert eq.displacement[0][top, 0].mean() == pytest.approx(small, rel=0.1)
+    assert eq.travel["press"][0] > 0 and eq.body_force["press"][0][2] == pytest.approx(normal, rel=1e-5)
+    # large shear: the whole face slips, friction saturates at mu N and the block stays behind the press
+    eq = solver.solve(body_poses={"press": _translation((0.5 * L, 0, L))})
+    eq.require_converged()
+    force, _ = _friction_wrench(eq, mesh, "press")
+    assert force[0] == pytest.approx(-mu * normal, rel=2e-3)
+    assert eq.displacement[0][top, 0].max() < 0.25 * L
+    # the pose reached is the one asked for
+    np.testing.assert_allclose(solver._poses[0, 0][:3, 3], [0.5 * L, 0, L], atol=1e-15)
+
+
+def test_frictionless_path_carries_no_tangential_force_and_a_twist_is_resisted():
+    mesh, solver = _clamped_block_under_a_press(0.0, 1.0)
+    before = solver.solve().displacement[0]
+    eq = solver.solve(body_poses={"press": _translation((0.3 * L, 0, L))})
+    eq.require_converged()
+    np.testing.assert_allclose(eq.displacement[0], before, atol=1e-9 * L)  # the slide changes nothing
+    # twist a frictional press about the block's axis: a rotationally symmetric plane, so only friction
+    # sees the motion; fully slipped, the torque is at most mu times the pressure's first moment about the axis
+    mu, normal = 0.5, 1.0
+    mesh, solver = _clamped_block_under_a_press(mu, normal)
+    twist = _translation((0, 0, L))
+    angle = 0.5
+    twist[:3, :3] = [[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]]
+    eq = solver.solve(body_poses={"press": twist})
+    eq.require_converged()
+    force, torque = _friction_wrench(eq, mesh, "press")
+    pressure = eq.contact_normal_force["press"][0]
+    x = eq.positions[0][mesh.surface_vertices]
+    moment = mu * (pressure * np.hypot(x[:, 0], x[:, 1])).sum()
+    # opposes the counter-clockwise twist; a little below the full-slip bound (vertices near the axis move
+    # less than their stick range)
+    assert -moment * (1 + 1e-6) <= torque <= -0.95 * moment
+    assert np.linalg.norm(force[:2]) < 0.05 * mu * normal  # a pure twist: no net shear

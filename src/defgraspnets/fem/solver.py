@@ -123,6 +123,36 @@ class SolverOptions:
             )
 
 
+def pose_change(start: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """(..., 6) rigid motion from ``start`` to ``end`` poses (..., 4, 4): translation and rotation vector
+    of the relative rotation R_start^T R_end (in the start frame) [m, rad]."""
+    from scipy.spatial.transform import Rotation
+
+    if start.size == 0:
+        return np.zeros((*start.shape[:-2], 6))
+    rel = np.einsum("...ji,...jk->...ik", start[..., :3, :3], end[..., :3, :3])
+    rotvec = Rotation.from_matrix(rel.reshape(-1, 3, 3)).as_rotvec().reshape(*rel.shape[:-2], 3)
+    return np.concatenate([end[..., :3, 3] - start[..., :3, 3], rotvec], axis=-1)
+
+
+def interpolate_poses(start: np.ndarray, end: np.ndarray, fraction) -> np.ndarray:
+    """Poses a ``fraction`` (per problem, (B,)) of the way from ``start`` to ``end`` (B, K, 4, 4):
+    translation linear, rotation R_start exp(fraction log(R_start^T R_end)) (the geodesic)."""
+    from scipy.spatial.transform import Rotation
+
+    lam = np.broadcast_to(np.asarray(fraction, dtype=np.float64), start.shape[:1])
+    if start.size == 0:
+        return start.copy()
+    motion = pose_change(start, end)
+    w = lam.reshape(-1, *([1] * (motion.ndim - 1)))
+    out = start.copy()
+    step = Rotation.from_rotvec((w * motion[..., 3:]).reshape(-1, 3)).as_matrix()
+    step = step.reshape(*motion.shape[:-1], 3, 3)
+    out[..., :3, :3] = start[..., :3, :3] @ step
+    out[..., :3, 3] = start[..., :3, 3] + w * motion[..., :3]
+    return out
+
+
 def rigid_body_modes(points: np.ndarray, batch_size: int, num_dofs: int) -> np.ndarray:
     """(B (N + D) 3, 6) translations and infinitesimal rotations of every problem's vertices (the near-null
     space of elasticity, for multigrid); travel rows get the unit translations."""
@@ -427,7 +457,8 @@ class QuasiStaticSolver:
     def set_body_pose(self, name: str, pose) -> None:
         """Pose (4x4, or (B, 4, 4) per problem) of body ``name``'s frame in the object frame at travel 0.
 
-        Changing a pose moves the body instantly (no friction history is carried across the change).
+        Changing a pose moves the body instantly (no friction history is carried across the change); to
+        drag contacts along (shear, twist), move the body with ``solve(body_poses=...)`` instead.
         """
         k = self._body(name)
         T = check_rigid_transform(pose, f"pose of body {name!r}")
@@ -834,6 +865,9 @@ class QuasiStaticSolver:
             ]
         law = start["pressure"] + lam[:, None] * (end["pressure"] - start["pressure"])
         self._gas_law[mask] = law[mask]
+        if self.num_bodies and end["poses"] is not start["poses"]:
+            self._poses[mask] = interpolate_poses(start["poses"], end["poses"], lam)[mask]
+            self._update_bodies()
         if self.fixed_mask.any():
             pres = start["prescribed"] + w * (end["prescribed"] - start["prescribed"])
             qv = q[:, :N]
@@ -850,6 +884,7 @@ class QuasiStaticSolver:
             "dof": self._dof_target.copy(),
             "prescribed": self._prescribed.copy(),
             "pressure": self._gas_target.copy(),
+            "poses": self._poses.copy(),
         }
 
     # ------------------------------------------------------------------ public solve
@@ -860,6 +895,7 @@ class QuasiStaticSolver:
         prescribed_displacement=None,
         initial_fraction: float = 1.0,
         pressure: PressureLoad | None = None,
+        body_poses: dict | None = None,
     ) -> Equilibrium:
         """Move every problem from its current loads to the given ones and return the equilibria.
 
@@ -872,6 +908,11 @@ class QuasiStaticSolver:
                 failing increments and grows successful ones on its own).
             pressure: new :class:`PressureLoad` of the pressure surface (default: keep the current one;
                 between load increments the gas law's p0 and C are interpolated linearly).
+            body_poses: body name -> new pose (4x4 or (B, 4, 4), as :meth:`set_body_pose`). Unlike
+                ``set_body_pose``, the body travels there along the load path (translation linear, rotation
+                along the geodesic, both with the load fraction) and drags its contacts with it: a sticking
+                contact is carried along, a slipping one is held back by Coulomb friction (shear, twist). A
+                problem that fails stays at the pose of its last converged increment.
         """
         B, N = self.batch_size, self.mesh.num_vertices
         start = self._loads_now()
@@ -897,6 +938,12 @@ class QuasiStaticSolver:
                 raise ValueError("a pressure load needs a solver built with a pressure_surface")
             self._gas_target = pressure.arrays(B)
         end = self._loads_now()
+        end["poses"] = start["poses"]
+        if body_poses:
+            end["poses"] = start["poses"].copy()
+            for name, pose in body_poses.items():
+                T = check_rigid_transform(pose, f"pose of body {name!r}")
+                end["poses"][:, self._body(name)] = np.broadcast_to(T, (B, 4, 4))
 
         o = self.options
         todo = self.status == SolveStatus.CONVERGED
@@ -907,7 +954,9 @@ class QuasiStaticSolver:
         linear_total = np.zeros(B, dtype=int)
         residual = np.zeros(B)
         change = np.concatenate(
-            [(end[k] - start[k]).reshape(B, -1) for k in ("dof", "nodal_force", "prescribed", "pressure")], 1
+            [(end[k] - start[k]).reshape(B, -1) for k in ("dof", "nodal_force", "prescribed", "pressure")]
+            + [pose_change(start["poses"], end["poses"]).reshape(B, -1)],
+            1,
         )
         while todo.any():
             log.debug("load increment: fractions %s -> %s", lam_done[todo][:4], lam_try[todo][:4])
@@ -946,6 +995,9 @@ class QuasiStaticSolver:
                 retry = bad & ~giveup
                 lam_try[retry] = 0.5 * (lam_done[retry] + lam_try[retry])
         # problems that failed stay at their last converged state; record how far they got
+        if end["poses"] is not start["poses"]:
+            self._poses = interpolate_poses(start["poses"], end["poses"], lam_done)
+            self._update_bodies()
         self._unpack(self._q, self._positions, self._travel)
         return self._results(lam_done, newton_total, linear_total, residual)
 
