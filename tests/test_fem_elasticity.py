@@ -13,8 +13,8 @@ E, NU = 2e5, 0.3
 MAT = fem.Material(E, NU, 1000.0)
 
 
-def _element(x, rest, mu, lam):
-    """Energy, gradient (12,) and Hessian (12, 12) of one tet from the Warp kernels."""
+def _element(x, rest, mu, lam, exact=False):
+    """Energy, gradient (12,) and Hessian (12, 12, projected or exact) of one tet from the Warp kernels."""
     m = fem.TetMesh(rest, [[0, 1, 2, 3]])
     args = dict(device="cpu")
     tets = wp.array(m.tets.astype(np.int32), dtype=wp.int32, **args)
@@ -32,7 +32,23 @@ def _element(x, rest, mu, lam):
     wp.launch(
         ek.elastic_gradient_hessian_kernel,
         (1, 1),
-        [pos, tets, binv, vol, mu_a, lam_a, blocks, 4, 4, 16, act, g, fs, H],
+        [
+            pos,
+            tets,
+            binv,
+            vol,
+            mu_a,
+            lam_a,
+            blocks,
+            4,
+            4,
+            16,
+            act,
+            wp.array([int(exact)], dtype=wp.int32),
+            g,
+            fs,
+            H,
+        ],
         **args,
     )
     return (
@@ -62,6 +78,26 @@ def test_element_gradient_and_hessian_match_finite_differences():
         H_fd[:, i] = (gp - gm) / (2 * h)
     assert np.abs(g - g_fd).max() < 1e-6 * np.abs(g).max()
     assert np.abs(H - H_fd).max() < 1e-6 * np.abs(H).max()
+
+
+def test_exact_element_hessian_of_a_compressed_tet_matches_finite_differences():
+    # compressed: the twist eigenvalues 2 mu (1 - 2 / (s_i + s_j)) are negative, so projection changes H
+    x = REST @ np.diag([0.7, 0.8, 0.9]).T
+    _, _, H = _element(x, REST, MAT.shear_modulus, MAT.lame_lambda, exact=True)
+    _, _, H_psd = _element(x, REST, MAT.shear_modulus, MAT.lame_lambda)
+    h = 1e-8
+    H_fd = np.zeros((12, 12))
+    for i in range(12):
+        xp, xm = x.ravel().copy(), x.ravel().copy()
+        xp[i] += h
+        xm[i] -= h
+        H_fd[:, i] = (
+            _element(xp.reshape(4, 3), REST, MAT.shear_modulus, MAT.lame_lambda)[1]
+            - _element(xm.reshape(4, 3), REST, MAT.shear_modulus, MAT.lame_lambda)[1]
+        ) / (2 * h)
+    assert np.abs(H - H_fd).max() < 1e-6 * np.abs(H).max()
+    assert np.linalg.eigvalsh(H).min() < -1e-3 * np.abs(H).max()  # truly indefinite
+    assert np.abs(H_psd - H).max() > 1e-2 * np.abs(H).max()  # and the projection differs
 
 
 def test_element_hessian_is_psd_when_compressed_and_inverted():

@@ -18,9 +18,14 @@ the 3x3 matrix A_ij = d2Psi/dsigma_i dsigma_j, and for each pair (i, j), with k 
 a twist mode U (e_i e_j^T - e_j e_i^T) V^T / sqrt2 with eigenvalue
 (Psi_i + Psi_j)/(sigma_i + sigma_j) = 2 mu (1 - 2/(sigma_i + sigma_j)) + lambda (J - 1) sigma_k and a
 flip mode U (e_i e_j^T + e_j e_i^T) V^T / sqrt2 with eigenvalue
-(Psi_i - Psi_j)/(sigma_i - sigma_j) = 2 mu - lambda (J - 1) sigma_k. Clamping the nine eigenvalues at
-zero gives the nearest positive semi-definite Hessian, so every Newton direction descends.
-Element blocks are K_ac = V_e sum_k lambda_k (Q_k beta_a)(Q_k beta_c)^T.
+(Psi_i - Psi_j)/(sigma_i - sigma_j) = 2 mu - lambda (J - 1) sigma_k. Replacing the nine eigenvalues by
+their absolute values gives a positive semi-definite Hessian (the "abs" projection of Chen et al. 2024,
+"Trust-region eigenvalue filtering for projected Newton", which converges faster than clamping at zero),
+so every Newton direction descends. Close to an equilibrium the projection costs Newton its quadratic
+convergence wherever elements are compressed (the twist eigenvalue 2 mu (1 - 2 / (sigma_i + sigma_j)) < 0:
+a dimpled membrane, the object under a finger), so the solver may ask for the *exact* Hessian (signed
+eigenvalues, ``exact[b] = 1``) once its steps are trusted; see :class:`~defgraspnets.fem.QuasiStaticSolver`.
+Element blocks are K_ac = V_e sum_k s_k |lambda_k| (Q_k beta_a)(Q_k beta_c)^T, s_k = sign(lambda_k) or 1.
 """
 
 from __future__ import annotations
@@ -158,12 +163,13 @@ def elastic_gradient_hessian_kernel(
     rows_per_problem: int,
     blocks_per_problem: int,
     active: wp.array(dtype=wp.int32),
+    exact: wp.array(dtype=wp.int32),
     gradient: wp.array(dtype=wp.vec3d),
     force_scale: wp.array(dtype=wp.float64),
     hessian: wp.array(dtype=wp.mat33d),
 ):
-    """Add each tet's energy gradient to ``gradient`` (rows b * rows_per_problem + v) and its PSD-projected
-    12x12 Hessian to ``hessian``.
+    """Add each tet's energy gradient to ``gradient`` (rows b * rows_per_problem + v) and its 12x12 Hessian
+    to ``hessian``: PSD-projected (abs eigenvalues), or exact where ``exact[b] == 1``.
 
     ``tet_blocks[e, 4a + c]`` is the BSR block
     index (within one problem) of vertex pair (a, c). ``force_scale[b]`` tracks max |elastic force|.
@@ -206,9 +212,15 @@ def elastic_gradient_hessian_kernel(
     d = wp.vec3d()
     wp.eig3(A, Z, d)
     W = mat912d()
+    sign = wp.vector(length=9, dtype=wp.float64)
+    for k in range(9):
+        sign[k] = one
+    signed = exact[b] == 1
     for k in range(3):
         z = wp.vec3d(Z[0, k], Z[1, k], Z[2, k])
         W = set_mode_row(W, k, U * wp.diag(z) * wp.transpose(V), d[k], B, vol)
+        if signed and d[k] < f64(0.0):
+            sign[k] = -one
 
     # twist and flip modes of the pairs (0,1), (0,2), (1,2) with third index k = 2, 1, 0
     for p in range(3):
@@ -229,6 +241,10 @@ def elastic_gradient_hessian_kernel(
         flip = two * m - l * jm1 * s[k3]
         W = set_mode_row(W, 3 + 2 * p, pair_mode(U, V, i, jj, f64(-1.0)), twist, B, vol)
         W = set_mode_row(W, 4 + 2 * p, pair_mode(U, V, i, jj, f64(1.0)), flip, B, vol)
+        if signed and twist < f64(0.0):
+            sign[3 + 2 * p] = -one
+        if signed and flip < f64(0.0):
+            sign[4 + 2 * p] = -one
 
     # K_ac = sum_k W[k, 3a:3a+3] W[k, 3c:3c+3]^T
     ob = b * blocks_per_problem
@@ -238,7 +254,7 @@ def elastic_gradient_hessian_kernel(
             for k in range(9):
                 wa = wp.vec3d(W[k, 3 * a], W[k, 3 * a + 1], W[k, 3 * a + 2])
                 wc = wp.vec3d(W[k, 3 * cc], W[k, 3 * cc + 1], W[k, 3 * cc + 2])
-                K += wp.outer(wa, wc)
+                K += sign[k] * wp.outer(wa, wc)
             wp.atomic_add(hessian, ob + tet_blocks[e, 4 * a + cc], K)
 
 

@@ -86,6 +86,12 @@ class SolverOptions:
             against an edge or corner: the object's rigid modes are otherwise free and Newton's steps
             along them unbounded). The price is a spurious force ``c_i (u_i - u_ref_i)`` at equilibrium;
             its largest value is reported as ``Equilibrium.stabilization_force`` (compare it with the loads).
+        exact_hessian: once a problem's Newton step is accepted in full and lowers the residual, its next
+            iterations use the exact elastic Hessian (signed element eigenvalues) instead of the PSD-projected
+            one: near a stable equilibrium the assembled Hessian is positive definite even where compressed
+            elements are not, and Newton regains quadratic convergence (a dimpled membrane: about 3x fewer
+            iterations). A step that is not a descent direction or needs backtracking returns the problem to
+            the projected Hessian for the rest of the increment.
         query_distance: search radius [m] of triangle-mesh bodies' signed distance queries.
         record_tet_stress: keep the per-tet Cauchy stress in results (B x M x 9 floats).
     """
@@ -104,6 +110,7 @@ class SolverOptions:
     escape_fraction: float = 0.5
     regularization: float = 1e-10
     stabilization: float = 0.0
+    exact_hessian: bool = True
     query_distance: float = 1.0
     record_tet_stress: bool = False
 
@@ -401,6 +408,7 @@ class QuasiStaticSolver:
         self._lag_force = wp.zeros(nc, dtype=wp.float64, device=dev)
         self._lag_normal = wp.zeros(nc, dtype=wp.vec3d, device=dev)
         self._stick_stretch = wp.zeros(nc, dtype=wp.vec3d, device=dev)
+        self._exact_hessian = wp.zeros(B, dtype=wp.int32, device=dev)  # per problem: 1 = exact Hessian
         self._c_force = wp.zeros(nc, dtype=wp.float64, device=dev)
         self._c_normal = wp.zeros(nc, dtype=wp.vec3d, device=dev)
         self._c_gap = wp.zeros(nc, dtype=wp.float64, device=dev)
@@ -720,6 +728,7 @@ class QuasiStaticSolver:
                 self.rows_per_problem,
                 self.pattern.nnz,
                 active,
+                self._exact_hessian,
                 sysm.gradient,
                 fscale,
                 sysm.values,
@@ -1059,6 +1068,8 @@ class QuasiStaticSolver:
         # that converges with frozen lags is accepted only if its own normal forces match the lags.
         relag = mask.copy()
         relags = np.zeros(B, dtype=int)
+        exact = np.zeros(B, dtype=np.int32)
+        self._exact_hessian.zero_()
         for _ in range(o.max_newton_iterations + 1):
             self._relag_friction(relag & working)
             relag = working & (iters < o.friction_relag_iterations)
@@ -1138,6 +1149,15 @@ class QuasiStaticSolver:
                 )
             nonfinite_step = failed == 2
             status[nonfinite_step] = SolveStatus.NONFINITE
+            if o.exact_hessian:
+                # trust the exact Hessian after a full step that lowered the residual; fall back to the
+                # projected one (and retry from the unchanged state) when its step fails or is cut back
+                alpha = self._step.numpy()
+                lost = working & (exact == 1) & ((failed == 1) | (alpha < 1.0))
+                failed[lost] = 0
+                exact[lost] = 0
+                exact[working & ~lost & (alpha == 1.0) & (res < previous)] = 1
+                self._exact_hessian.assign(exact)
             # a failed line search this close to the tolerance is round-off: accept the state
             stalled = failed == 1
             near = stalled & (residual <= 1e3 * (o.rtol * scale + atol))
@@ -1155,6 +1175,7 @@ class QuasiStaticSolver:
             esc = working & (drift.numpy() > escape)
             status[esc] = SolveStatus.ESCAPED
             working &= ~esc
+        self._exact_hessian.zero_()
         return ok, status, iters, lin_iters, residual
 
     def _linear_solve(self, rtol: float) -> tuple[int, float]:

@@ -44,6 +44,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from defgraspnets import fem
 from defgraspnets.tactile.camera import PICO_FLEXX, CameraIntrinsics, DepthCamera, DepthFrame
@@ -101,6 +102,7 @@ class TactileReading:
         gas_volume: gas volume V + V_h [m^3].
         depth_travel: indentation depth beyond first contact [m].
         indenter_position: (3,) indenter origin at the reading [m].
+        indenter_pose: the indenter's pose at the reading (its origin and orientation, sensor frame).
         converged: whether the equilibrium solve succeeded (if not, nothing else is an answer).
         solve_time: wall time of the batched solve that produced it [s].
     """
@@ -114,6 +116,7 @@ class TactileReading:
     gas_volume: float
     depth_travel: float
     indenter_position: np.ndarray
+    indenter_pose: Pose
     converged: bool
     solve_time: float
 
@@ -227,9 +230,10 @@ class MembraneSimulator:
             )
         #: the FEM equilibrium of the inflated membrane (all problems)
         self.inflated = eq
-        return self._readings(eq, np.zeros(self.batch_size), self._idle_poses(), time.perf_counter() - t0, 1)[
-            0
-        ]
+        idle = self._idle_poses()
+        return self._readings(
+            eq, np.zeros(self.batch_size), idle, idle[:, :3, :3], time.perf_counter() - t0, 1
+        )[0]
 
     # ------------------------------------------------------------------ indentation geometry
     def onset_travel(self, indentation: Indentation) -> float:
@@ -282,52 +286,174 @@ class MembraneSimulator:
         return T
 
     # ------------------------------------------------------------------ indentation
-    def indent(
-        self, indentations: list[Indentation], render: bool = True, steps: int = 2
-    ) -> list[TactileReading]:
-        """Indent the inflated membrane, up to B indentations in one batched solve.
-
-        Each problem starts from the inflated state: the indenter is placed at its contact onset and
-        pushed ``depth`` further in ``steps`` equal load steps; afterwards the indenters are withdrawn
-        so the next call starts from the inflated membrane again.
-
-        Raises:
-            WorkspaceError: an indenter would reach below the clamped rim plane, or never meets the
-                membrane; IndenterError / ValueError: bad input.
-        """
+    def _prepare(self, indentations) -> tuple[list[Indentation], np.ndarray, np.ndarray]:
+        """Checked items, FEM body frames at contact onset (B, 4, 4) and indenter rotations (B, 3, 3)."""
         items = list(indentations)
         if not 1 <= len(items) <= self.batch_size:
             raise ValueError(f"give 1 to {self.batch_size} indentations, got {len(items)}")
         for item in items:
             if not isinstance(item, Indentation):
                 raise TypeError(f"indentations must be Indentation instances, got {type(item).__name__}")
-        poses = self._idle_poses()
-        depth = np.zeros(self.batch_size)
+        frames = self._idle_poses()
+        rotations = np.broadcast_to(np.eye(3), (self.batch_size, 3, 3)).copy()
         for b, item in enumerate(items):
             t0 = self.onset_travel(item)
             start = Pose(item.pose.position + t0 * np.asarray(item.direction), item.pose.quaternion)
             final = Pose(start.position + item.depth * np.asarray(item.direction), item.pose.quaternion)
             check_workspace(self.indenter.with_pose(final), self.sensor.dimensions)
-            poses[b] = self._body_frame(Indentation(start, item.depth, item.direction))
-            depth[b] = item.depth
+            frames[b] = self._body_frame(Indentation(start, item.depth, item.direction))
+            rotations[b] = item.pose.rotation.as_matrix()
+        return items, frames, rotations
+
+    def _push(self, depth: np.ndarray, pushed: np.ndarray, max_step: float):
+        """Displacement-controlled travel from the current ``pushed`` depths to ``depth`` in solves of at
+        most ``max_step``; flags problems whose indenter lost all contact on the way (it passed through
+        the shell between surface vertices: the mesh is too coarse for this indenter)."""
         s = self.solver
-        s.set_body_pose("indenter", poses)
-        t_start = time.perf_counter()
-        for k in range(1, steps + 1):
-            eq = s.solve(targets={"indenter": depth * k / steps})
-        elapsed = time.perf_counter() - t_start
-        readings = self._readings(eq, depth, poses, elapsed, len(items), render)
-        # withdraw (the elastic state is path independent once contact is lost); re-inflate after failures
-        if eq.converged.all():
+        n = max(1, int(np.ceil(np.max(np.abs(depth - pushed)) / max_step - 1e-9)))
+        eq = None
+        for k in range(1, n + 1):
+            eq = s.solve(targets={"indenter": pushed + (depth - pushed) * k / n})
+            self._flag_lost_contact(eq, depth > 0)
+        return eq
+
+    def _flag_lost_contact(self, eq, pressing: np.ndarray) -> None:
+        touching = eq.contact_normal_force["indenter"].sum(axis=1) > 0
+        lost = pressing & eq.converged & ~touching
+        for b in np.nonzero(lost)[0]:
+            self.solver.status[b] = fem.SolveStatus.ESCAPED
+            eq.status[b] = fem.SolveStatus.ESCAPED
+            eq.converged[b] = False
+
+    def indent(self, indentations: list[Indentation], render: bool = True, max_step: float = 0.002):
+        """Indent the inflated membrane, up to B indentations in one batched solve; one reading each.
+
+        See :meth:`indent_series` (this is its single level 1.0)."""
+        return self.indent_series(indentations, (1.0,), render=render, max_step=max_step)[0]
+
+    def indent_series(
+        self, indentations: list[Indentation], levels, render: bool = True, max_step: float = 0.002
+    ) -> list[list[TactileReading]]:
+        """Indent the inflated membrane and read the sensor at several depths along each path.
+
+        Each problem starts from the inflated state with its indenter at contact onset and is pushed
+        along its direction; readings are taken at the fractions ``levels`` (increasing, in (0, 1]) of
+        its ``depth``, each load step moving the indenter at most ``max_step`` [m] (much less than the
+        shell's thickness, so the indenter cannot jump through it). Afterwards the indenters are
+        withdrawn and the next call starts from the inflated membrane again.
+
+        Returns:
+            readings[level][item]. A problem that fails (no equilibrium, or the indenter lost contact
+            while pressing: the mesh is too coarse for the indenter) has ``converged = False`` from that
+            level on.
+
+        Raises:
+            WorkspaceError: an indenter would reach below the clamped rim plane, or never meets the
+                membrane; IndenterError / ValueError: bad input.
+        """
+        levels = np.asarray(levels, dtype=np.float64).ravel()
+        if len(levels) == 0 or np.any(np.diff(levels) <= 0) or levels[0] <= 0 or levels[-1] > 1 + 1e-12:
+            raise ValueError(f"levels must increase within (0, 1], got {levels.tolist()}")
+        if not max_step > 0:
+            raise ValueError(f"max_step must be > 0 m, got {max_step!r}")
+        items, frames, rotations = self._prepare(indentations)
+        final = np.zeros(self.batch_size)
+        final[: len(items)] = [item.depth for item in items]
+        self.solver.set_body_pose("indenter", frames)
+        out, pushed = [], np.zeros(self.batch_size)
+        try:
+            for level in levels:
+                t_start = time.perf_counter()
+                eq = self._push(level * final, pushed, max_step)
+                pushed = level * final
+                out.append(
+                    self._readings(
+                        eq, pushed, frames, rotations, time.perf_counter() - t_start, len(items), render
+                    )
+                )
+        finally:
+            self._withdraw()
+        return out
+
+    def press_and_move(
+        self,
+        indentations: list[Indentation],
+        motions,
+        render: bool = True,
+        max_step: float = 0.002,
+    ) -> list[list[TactileReading]]:
+        """Press each indenter to its depth, then move it rigidly with friction (shear, twist) and read.
+
+        Args:
+            indentations: up to B presses (pose, depth, direction), as :meth:`indent`.
+            motions: (L, n, 4, 4) or (L, 4, 4) rigid motions in the sensor frame, each applied to the
+                pressed indenter (not cumulative: level l is the motion from the pressed pose), read at each
+                level in order; the indenter travels between levels along the geodesic, dragging the
+                membrane where friction holds it (``solve(body_poses=...)`` of the FEM engine), in load
+                steps of at most ``max_step`` [m] of motion of any point within the outer radius.
+
+        Returns:
+            readings[level][item], as :meth:`indent_series`.
+        """
+        items, frames, rotations = self._prepare(indentations)
+        n = len(items)
+        M = np.asarray(motions, dtype=np.float64)
+        if M.ndim == 3:
+            M = np.broadcast_to(M[:, None], (M.shape[0], n, 4, 4))
+        if M.ndim != 4 or M.shape[1:] != (n, 4, 4) or len(M) == 0:
+            raise ValueError(f"motions must have shape (L, {n}, 4, 4) or (L, 4, 4), got {np.shape(motions)}")
+        for m in M.reshape(-1, 4, 4):
+            fem.bodies.check_rigid_transform(m, "motion")
+        if not max_step > 0:
+            raise ValueError(f"max_step must be > 0 m, got {max_step!r}")
+        depth = np.zeros(self.batch_size)
+        depth[:n] = [item.depth for item in items]
+        s = self.solver
+        s.set_body_pose("indenter", frames)
+        out = []
+        reach = self.sensor.dimensions.outer_radius
+        try:
+            t_start = time.perf_counter()
+            self._push(depth, np.zeros(self.batch_size), max_step)
+            current = frames.copy()
+            for level in M:
+                target = current.copy()
+                target[:n] = level @ frames[:n]
+                motion = fem.solver.pose_change(current, target)
+                span = np.linalg.norm(motion[:, :3], axis=1) + reach * np.linalg.norm(motion[:, 3:], axis=1)
+                steps = max(1, int(np.ceil(span.max() / max_step - 1e-9)))
+                eq = None
+                for k in range(1, steps + 1):
+                    eq = s.solve(
+                        body_poses={"indenter": fem.solver.interpolate_poses(current, target, k / steps)}
+                    )
+                    self._flag_lost_contact(eq, depth > 0)
+                if eq is None:  # pragma: no cover - steps >= 1
+                    raise AssertionError
+                current = target
+                turned = rotations.copy()
+                turned[:n] = level[:, :3, :3] @ rotations[:n]
+                out.append(
+                    self._readings(eq, depth, current, turned, time.perf_counter() - t_start, n, render)
+                )
+                t_start = time.perf_counter()
+        finally:
+            self._withdraw()
+        return out
+
+    def _withdraw(self) -> None:
+        """Take the indenters away (the elastic state is path independent once contact is lost); re-inflate
+        if any problem failed, so the next call starts from the inflated membrane."""
+        s = self.solver
+        if (s.status == fem.SolveStatus.CONVERGED).all():
             back = s.solve(targets={"indenter": 0.0})
             s.set_body_pose("indenter", self._idle_poses())
             if back.converged.all():
-                return readings
+                return
         self._inflate()
-        return readings
 
     # ------------------------------------------------------------------ outputs
-    def _readings(self, eq, depth, frames, elapsed, count, render=True) -> list[TactileReading]:
+    def _readings(self, eq, depth, frames, rotations, elapsed, count, render=True) -> list[TactileReading]:
         clamped = self.sensor.clamped_vertices
         x = eq.positions
         out = []
@@ -350,6 +476,9 @@ class MembraneSimulator:
                     gas_volume=float(eq.cavity_volume[b] + self.sensor.dimensions.housing_volume),
                     depth_travel=float(depth[b]),
                     indenter_position=frames[b, :3, 3] + depth[b] * frames[b, :3, 2],
+                    indenter_pose=Pose.from_rotation(
+                        frames[b, :3, 3] + depth[b] * frames[b, :3, 2], Rotation.from_matrix(rotations[b])
+                    ),
                     converged=bool(eq.converged[b]),
                     solve_time=elapsed,
                 )
