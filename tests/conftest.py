@@ -31,3 +31,15 @@ def pytest_collection_modifyitems(config, items):
 @pytest.fixture(scope="session")
 def cuda_available() -> bool:
     return _cuda_available()
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """Tiny graphs and networks: intra-op threads only add synchronization (and stall badly on a busy
+    2-core machine). Use with ``pytestmark = pytest.mark.usefixtures("one_torch_thread")``."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

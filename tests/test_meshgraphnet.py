@@ -14,13 +14,7 @@ from defgraspnets.models.graph import NODE_FINGER
 from defgraspnets.models.meshgraphnet import DefGraspNet
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    # tiny graphs: intra-op threads only add synchronization (and stall badly on a busy 2-core machine)
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

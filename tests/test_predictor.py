@@ -14,12 +14,7 @@ from defgraspnets.models.defgraspnets_module import DefGraspNetsModule
 from defgraspnets.models.predictor import DefGraspNetsPredictor, FingerGeometry, finger_contact_poses
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -32,6 +32,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from .kernels import max_abs_component
+
 f64 = wp.float64
 
 
@@ -192,7 +194,7 @@ def elastic_gradient_hessian_kernel(
     for a in range(4):
         g = vol * (P * shape_gradient(B, a))
         wp.atomic_add(gradient, b * rows_per_problem + tets[e, a], g)
-        wp.atomic_max(force_scale, b, wp.max(wp.abs(g[0]), wp.max(wp.abs(g[1]), wp.abs(g[2]))))
+        wp.atomic_max(force_scale, b, max_abs_component(g))
 
     # scaling modes: A_ii = 2 mu + lambda c_i^2, A_ij = lambda (c_i c_j + (J - 1) sigma_k), c_i = J / sigma_i
     jm1 = s[0] * s[1] * s[2] - one

@@ -7,6 +7,12 @@ import warp as wp
 f64 = wp.float64
 
 
+@wp.func
+def max_abs_component(v: wp.vec3d) -> wp.float64:
+    """max(|v_x|, |v_y|, |v_z|): the force scales of the convergence test are per component."""
+    return wp.max(wp.abs(v[0]), wp.max(wp.abs(v[1]), wp.abs(v[2])))
+
+
 @wp.kernel
 def unpack_state_kernel(
     q: wp.array(dtype=wp.vec3d),
@@ -86,7 +92,7 @@ def newton_rhs_kernel(
     if active[b] == 0:
         v = wp.vec3d()
     rhs[i] = v
-    wp.atomic_max(residual, b, wp.max(wp.abs(v[0]), wp.max(wp.abs(v[1]), wp.abs(v[2]))))
+    wp.atomic_max(residual, b, max_abs_component(v))
 
 
 @wp.kernel
@@ -163,7 +169,7 @@ def external_gradient_kernel(
     if r < num_vertices:
         f = nodal_force[b * num_vertices + r]
         gradient[b * R + r] = gradient[b * R + r] - f
-        wp.atomic_max(load_scale, b, wp.max(wp.abs(f[0]), wp.max(wp.abs(f[1]), wp.abs(f[2]))))
+        wp.atomic_max(load_scale, b, max_abs_component(f))
     else:
         F = dof_force[b * num_dofs + r - num_vertices]
         gradient[b * R + r] = gradient[b * R + r] - wp.vec3d(F, f64(0.0), f64(0.0))

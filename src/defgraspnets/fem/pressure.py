@@ -50,6 +50,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from .kernels import max_abs_component
+
 __all__ = ["PressureLoad", "PressureSurface", "STANDARD_ATMOSPHERE"]
 
 f64 = wp.float64
@@ -257,7 +259,7 @@ def pressure_gradient_kernel(
     i = b * rows_per_problem + v
     f = pressure[b] * volume_gradient[i]
     gradient[i] = gradient[i] - f
-    wp.atomic_max(load_scale, b, wp.max(wp.abs(f[0]), wp.max(wp.abs(f[1]), wp.abs(f[2]))))
+    wp.atomic_max(load_scale, b, max_abs_component(f))
 
 
 @wp.kernel

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
+from scipy.spatial.transform import Rotation
 
 from . import contact as ck
 from . import elasticity as ek
@@ -90,8 +91,8 @@ class SolverOptions:
             iterations use the exact elastic Hessian (signed element eigenvalues) instead of the PSD-projected
             one: near a stable equilibrium the assembled Hessian is positive definite even where compressed
             elements are not. Measured on a fingertip dimpling the membrane: 8 % fewer Newton iterations (the
-            slow convergence there has another cause, still open). A step that is not a descent direction or needs backtracking returns the problem to
-            the projected Hessian for the rest of the increment.
+            slow convergence there has another cause, still open). A step that is not a descent direction
+            or needs backtracking returns the problem to the projected Hessian for the rest of the increment.
         query_distance: search radius [m] of triangle-mesh bodies' signed distance queries.
         record_tet_stress: keep the per-tet Cauchy stress in results (B x M x 9 floats).
     """
@@ -133,8 +134,6 @@ class SolverOptions:
 def pose_change(start: np.ndarray, end: np.ndarray) -> np.ndarray:
     """(..., 6) rigid motion from ``start`` to ``end`` poses (..., 4, 4): translation and rotation vector
     of the relative rotation R_start^T R_end (in the start frame) [m, rad]."""
-    from scipy.spatial.transform import Rotation
-
     if start.size == 0:
         return np.zeros((*start.shape[:-2], 6))
     rel = np.einsum("...ji,...jk->...ik", start[..., :3, :3], end[..., :3, :3])
@@ -145,8 +144,6 @@ def pose_change(start: np.ndarray, end: np.ndarray) -> np.ndarray:
 def interpolate_poses(start: np.ndarray, end: np.ndarray, fraction) -> np.ndarray:
     """Poses a ``fraction`` (per problem, (B,)) of the way from ``start`` to ``end`` (B, K, 4, 4):
     translation linear, rotation R_start exp(fraction log(R_start^T R_end)) (the geodesic)."""
-    from scipy.spatial.transform import Rotation
-
     lam = np.broadcast_to(np.asarray(fraction, dtype=np.float64), start.shape[:1])
     if start.size == 0:
         return start.copy()

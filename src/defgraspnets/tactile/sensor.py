@@ -317,6 +317,20 @@ class MembraneSimulator:
             self._flag_lost_contact(eq, depth > 0)
         return eq
 
+    def _move(self, current: np.ndarray, target: np.ndarray, depth: np.ndarray, max_step: float):
+        """Move the pressed indenters from body frames ``current`` to ``target`` (B, 4, 4) with friction, in
+        steps that move no point within the outer radius more than ``max_step``; flags lost contact."""
+        motion = fem.solver.pose_change(current, target)
+        reach = self.sensor.dimensions.outer_radius
+        span = np.linalg.norm(motion[:, :3], axis=1) + reach * np.linalg.norm(motion[:, 3:], axis=1)
+        steps = max(1, int(np.ceil(span.max() / max_step - 1e-9)))
+        for k in range(1, steps + 1):
+            eq = self.solver.solve(
+                body_poses={"indenter": fem.solver.interpolate_poses(current, target, k / steps)}
+            )
+            self._flag_lost_contact(eq, depth > 0)
+        return eq
+
     def _flag_lost_contact(self, eq, pressing: np.ndarray) -> None:
         touching = eq.contact_normal_force["indenter"].sum(axis=1) > 0
         lost = pressing & eq.converged & ~touching
@@ -411,7 +425,6 @@ class MembraneSimulator:
         s = self.solver
         s.set_body_pose("indenter", frames)
         out = []
-        reach = self.sensor.dimensions.outer_radius
         try:
             t_start = time.perf_counter()
             self._push(depth, np.zeros(self.batch_size), max_step)
@@ -419,17 +432,7 @@ class MembraneSimulator:
             for level in M:
                 target = current.copy()
                 target[:n] = level @ frames[:n]
-                motion = fem.solver.pose_change(current, target)
-                span = np.linalg.norm(motion[:, :3], axis=1) + reach * np.linalg.norm(motion[:, 3:], axis=1)
-                steps = max(1, int(np.ceil(span.max() / max_step - 1e-9)))
-                eq = None
-                for k in range(1, steps + 1):
-                    eq = s.solve(
-                        body_poses={"indenter": fem.solver.interpolate_poses(current, target, k / steps)}
-                    )
-                    self._flag_lost_contact(eq, depth > 0)
-                if eq is None:  # pragma: no cover - steps >= 1
-                    raise AssertionError
+                eq = self._move(current, target, depth, max_step)
                 current = target
                 turned = rotations.copy()
                 turned[:n] = level[:, :3, :3] @ rotations[:n]
