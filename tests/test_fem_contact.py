@@ -308,7 +308,8 @@ def test_frictionless_path_carries_no_tangential_force_and_a_twist_is_resisted()
     eq.require_converged()
     np.testing.assert_allclose(eq.displacement[0], before, atol=1e-9 * L)  # the slide changes nothing
     # twist a frictional press about the block's axis: a rotationally symmetric plane, so only friction
-    # sees the motion; fully slipped, the torque is at most mu times the pressure's first moment about the axis
+    # sees the motion; fully slipped, the torque is at most mu times the pressure's first moment about
+    # the axis
     mu, normal = 0.5, 1.0
     mesh, solver = _clamped_block_under_a_press(mu, normal)
     twist = _translation((0, 0, L))

@@ -13,7 +13,6 @@ from defgraspnets.data.grasp_schema import GraspShard
 from defgraspnets.models.graph import NODE_FINGER
 from defgraspnets.models.meshgraphnet import DefGraspNet
 
-
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 

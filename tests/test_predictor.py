@@ -13,7 +13,6 @@ from defgraspnets.fem.mesh import TetMesh
 from defgraspnets.models.defgraspnets_module import DefGraspNetsModule
 from defgraspnets.models.predictor import DefGraspNetsPredictor, FingerGeometry, finger_contact_poses
 
-
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
