@@ -1,8 +1,8 @@
 """Generate the tactile datasets of thesis §3.3 on the FEM membrane sensor (depth image -> wrench).
 
     python datagen/tactile.py                                  # small poking set (CPU, minutes)
-    python datagen/tactile.py experiment=forearm               # small forearm shear / twist set
-    python datagen/tactile.py -m experiment=poke,forearm stride=1 limit=null membrane.cap_divisions=16 \
+    python datagen/tactile.py dataset=forearm                  # small forearm shear / twist set
+    python datagen/tactile.py -m dataset=poke,forearm stride=1 limit=null membrane.cap_divisions=16 \
         indenter.radius=0.005 batch_size=16 device=cuda        # the thesis grids
 
 Config: configs/datagen/tactile.yaml. All logic lives in :mod:`defgraspnets.tactile.datasets`; a
@@ -35,13 +35,13 @@ def main(cfg: DictConfig) -> None:
     if cfg.device is not None:
         wp.set_device(cfg.device)
     sensor = build_membrane(cap_divisions=cfg.membrane.cap_divisions, layers=cfg.membrane.layers)
-    if cfg.experiment == "poke":
+    if cfg.dataset == "poke":
         indenter = SphereIndenter(radius=cfg.indenter.radius)
     else:
         indenter = CapsuleIndenter(radius=cfg.forearm.radius, length=cfg.forearm.length)
     counts = generate_tactile_dataset(
-        cfg.experiment,
-        Path(cfg.out_dir) / cfg.experiment / f"{cfg.shard_name}.h5",
+        cfg.dataset,
+        Path(cfg.out_dir) / cfg.dataset / f"{cfg.shard_name}.h5",
         sensor,
         indenter,
         gauge_pressure=cfg.gas.gauge_pressure,
@@ -50,6 +50,8 @@ def main(cfg: DictConfig) -> None:
         batch_size=cfg.batch_size,
         stride=cfg.stride,
         limit=cfg.limit,
+        shard_index=cfg.shard_index,
+        shard_count=cfg.shard_count,
         max_step=cfg.max_step,
         intrinsics=PICO_FLEXX.scaled(cfg.camera_scale),
         store_points=cfg.store_points,

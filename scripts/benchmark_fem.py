@@ -10,8 +10,6 @@ solver. Config: configs/benchmark_fem.yaml.
 from __future__ import annotations
 
 import json
-import os
-import platform
 import time
 from pathlib import Path
 
@@ -20,32 +18,12 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 
-def machine_description(device) -> dict:
-    import warp as wp
-
-    info = {
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "warp": wp.__version__,
-        "cpu": platform.processor() or platform.machine(),
-        "cpu_count": os.cpu_count(),
-    }
-    try:
-        with open("/proc/cpuinfo") as f:
-            names = [line.split(":", 1)[1].strip() for line in f if line.startswith("model name")]
-        if names:
-            info["cpu"] = names[0]
-    except OSError:
-        pass
-    info["device"] = device.name if device.is_cuda else "cpu"
-    return info
-
-
 @hydra.main(version_base="1.3", config_path="../configs", config_name="benchmark_fem")
 def main(cfg: DictConfig) -> None:
     import warp as wp
 
     from defgraspnets import fem
+    from defgraspnets.eval.machine import machine_info
     from defgraspnets.grasp.sampler import sample_antipodal_grasps
     from defgraspnets.grasp.squeeze import make_squeeze_solver, squeeze_ramp, squeeze_solver_options
 
@@ -72,7 +50,7 @@ def main(cfg: DictConfig) -> None:
     step_seconds, newton, krylov = [], np.zeros(len(grasps), dtype=int), []
     record = {
         "benchmark": "fem_squeeze_ramp",
-        "machine": machine_description(device),
+        "machine": {**machine_info(str(device) if device.is_cuda else "cpu"), "warp": wp.__version__},
         "object": {
             "shape": "box",
             "size_m": size.tolist(),

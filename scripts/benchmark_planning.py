@@ -22,23 +22,6 @@ import numpy as np  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 
-def _machine(device: str) -> dict:
-    import platform
-
-    import torch
-
-    info = {"platform": platform.platform(), "torch": torch.__version__, "cpu_count": os.cpu_count()}
-    try:
-        with open("/proc/cpuinfo") as f:
-            names = [line.split(":", 1)[1].strip() for line in f if line.startswith("model name")]
-        info["cpu"] = names[0] if names else platform.machine()
-    except OSError:
-        info["cpu"] = platform.machine()
-    if device.startswith("cuda"):
-        info["gpu"] = torch.cuda.get_device_name(torch.device(device))
-    return info
-
-
 def _network(cfg):
     import torch
 
@@ -63,6 +46,7 @@ def main(cfg: DictConfig) -> None:
 
     import torch
 
+    from defgraspnets.eval.machine import machine_info
     from defgraspnets.grasp.datagen import structured_box
     from defgraspnets.grasp.sampler import sample_antipodal_grasps
     from defgraspnets.models.predictor import DefGraspNetsPredictor
@@ -79,7 +63,7 @@ def main(cfg: DictConfig) -> None:
     grasps = sample_antipodal_grasps(mesh, cfg.n_grasps, seed=0)
     net, radius, weights = _network(cfg)
     result = {
-        "machine": _machine(cfg.device),
+        "machine": machine_info(cfg.device),
         "device": cfg.device,
         "object": {"name": mesh.name, "vertices": mesh.num_vertices, "tets": mesh.num_tets},
         "grasps": len(grasps),

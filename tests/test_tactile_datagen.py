@@ -11,6 +11,7 @@ from defgraspnets.tactile.datasets import (
     generate_tactile_shard,
     make_simulator,
     poke_paths,
+    select_paths,
     sensor_references,
 )
 from defgraspnets.tactile.indenters import (
@@ -43,6 +44,22 @@ def test_poke_paths_cover_the_grid_once():
         np.testing.assert_allclose(p.params[:, 3], p.levels * p.indentation.depth)
     fore = forearm_paths(dict(enumerate(forearm_grid())), CapsuleIndenter(radius=0.04, length=0.2), sensor)
     assert sorted(np.concatenate([p.ids for p in fore]).tolist()) == list(range(len(forearm_grid())))
+
+
+def test_shards_split_the_selection_disjointly_and_spread_over_the_grid():
+    sensor = build_membrane(cap_divisions=4, layers=2)
+    paths = poke_paths(dict(enumerate(poke_grid())), FINGERTIP, sensor)
+    chosen = select_paths(paths, stride=3, limit=500)
+    shards = [select_paths(paths, 3, 500, shard_index=k, shard_count=7) for k in range(7)]
+    ids = [np.concatenate([p.ids for p in shard]) for shard in shards]
+    assert sorted(np.concatenate(ids).tolist()) == sorted(np.concatenate([p.ids for p in chosen]).tolist())
+    assert max(len(s) for s in shards) - min(len(s) for s in shards) <= 1
+    # every shard reaches both ends of the selection (interleaved, not contiguous blocks)
+    for shard in shards:
+        assert shard[0].ids[0] < chosen[7].ids[0] and shard[-1].ids[0] > chosen[-8].ids[0]
+    for bad in ({"shard_index": 7, "shard_count": 7}, {"shard_index": -1, "shard_count": 2}, {"shard_count": 0}):
+        with pytest.raises(ValueError, match="shard_index"):
+            select_paths(paths, **bad)
 
 
 def test_poke_dataset_round_trip_and_resume(sensor, tmp_path):

@@ -151,6 +151,12 @@ def test_lightning_fit_metrics_and_inference_call(tmp_path, one_thread):
         ckpt, net=WrenchCNN(image_shape=(H, W), channels=(4, 8), pool_size=2, hidden_features=(16,))
     )
     np.testing.assert_allclose(loaded.predict_wrench(depth), expected, rtol=1e-5, atol=1e-6)
+    # ... and so do the network's constructor arguments: no net needed to load it
+    rebuilt = WrenchRegressionModule.from_checkpoint(ckpt)
+    assert not rebuilt.training
+    np.testing.assert_allclose(rebuilt.predict_wrench(depth), expected, rtol=1e-5, atol=1e-6)
+    with pytest.raises(FileNotFoundError, match="wrench checkpoint"):
+        WrenchRegressionModule.from_checkpoint(tmp_path / "missing.ckpt")
 
     with pytest.raises(ValueError, match="shape"):
         module.predict_wrench(depth[:, :, :-1], reference)

@@ -50,6 +50,17 @@ class WrenchCNN(nn.Module):
         out_features: int = 6,
     ):
         super().__init__()
+        # constructor arguments, stored in checkpoints so that a trained network rebuilds from the file
+        self.config = {
+            "image_shape": [int(s) for s in image_shape],
+            "channels": [int(c) for c in channels],
+            "kernel_size": int(kernel_size),
+            "pool_size": int(pool_size),
+            "hidden_features": [int(h) for h in hidden_features],
+            "dropout": float(dropout),
+            "input_pool": int(input_pool),
+            "out_features": int(out_features),
+        }
         self.image_shape = tuple(int(s) for s in image_shape)
         if len(self.image_shape) != 2 or min(self.image_shape) < 1:
             raise ValueError(f"image_shape must be (H, W) with positive sizes, got {image_shape!r}")

@@ -133,6 +133,30 @@ class WrenchRegressionModule(L.LightningModule):
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         if self.reference_depth is not None:
             checkpoint["reference_depth"] = self.reference_depth.cpu()
+        if isinstance(getattr(self.net, "config", None), dict):
+            checkpoint["net_config"] = dict(self.net.config)
+
+    @classmethod
+    def from_checkpoint(cls, path, map_location="cpu") -> WrenchRegressionModule:
+        """A trained module ready for :meth:`predict_wrench`, network rebuilt from the checkpoint
+        (:class:`~defgraspnets.models.wrench_cnn.WrenchCNN` with its stored constructor arguments)."""
+        from pathlib import Path
+
+        from .wrench_cnn import WrenchCNN
+
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"wrench checkpoint not found: {path}")
+        checkpoint = torch.load(path, map_location=map_location, weights_only=False)
+        if "net_config" not in checkpoint:
+            raise ValueError(
+                f"{path} stores no net_config (saved before it existed): load it with "
+                "WrenchRegressionModule.load_from_checkpoint(path, net=WrenchCNN(...same arguments...))"
+            )
+        module = cls.load_from_checkpoint(
+            path, map_location=map_location, net=WrenchCNN(**checkpoint["net_config"])
+        )
+        return module.eval()
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         self.reference_depth = checkpoint.get("reference_depth")

@@ -198,7 +198,7 @@ class DepthCamera:
         intrinsics: pinhole model (default :data:`PICO_FLEXX`).
         position: (3,) optical centre in the sensor frame [m] (default: the origin).
         noise: optional :class:`ToFNoise`; None renders exact depths.
-        device: Warp device, ``"cpu"`` or ``"cuda"`` / ``"cuda:0"`` (same code).
+        device: Warp device, ``"cpu"`` or ``"cuda"`` / ``"cuda:0"`` (same code); None = Warp's default.
     """
 
     def __init__(
@@ -206,7 +206,7 @@ class DepthCamera:
         intrinsics: CameraIntrinsics = PICO_FLEXX,
         position=(0.0, 0.0, 0.0),
         noise: ToFNoise | None = None,
-        device: str = "cpu",
+        device: str | None = None,
     ):
         self.intrinsics = intrinsics
         self.position = np.asarray(position, dtype=np.float64)

@@ -279,12 +279,26 @@ def generate_tactile_shard(
     return counts
 
 
-def select_paths(paths: list[TactilePath], stride: int = 1, limit: int | None = None) -> list[TactilePath]:
-    """Every ``stride``-th path of the grid (a spread-out subset), at most ``limit`` of them."""
+def select_paths(
+    paths: list[TactilePath],
+    stride: int = 1,
+    limit: int | None = None,
+    shard_index: int = 0,
+    shard_count: int = 1,
+) -> list[TactilePath]:
+    """Every ``stride``-th path of the grid (a spread-out subset), at most ``limit`` of them, then the
+    ``shard_index``-th of ``shard_count`` interleaved shards of those (``chosen[shard_index::shard_count]``:
+    the shards are disjoint, cover the selection exactly, and each one spreads over the whole grid, so
+    independent processes can generate them in parallel and any finished subset is a fair sample)."""
     if int(stride) < 1 or (limit is not None and int(limit) < 1):
         raise ValueError(f"stride must be >= 1 and limit >= 1 or None, got {stride!r}, {limit!r}")
+    if int(shard_count) < 1 or not 0 <= int(shard_index) < int(shard_count):
+        raise ValueError(
+            f"shard_index must lie in [0, shard_count) with shard_count >= 1, got {shard_index!r} of {shard_count!r}"
+        )
     chosen = paths[:: int(stride)]
-    return chosen if limit is None else chosen[: int(limit)]
+    chosen = chosen if limit is None else chosen[: int(limit)]
+    return chosen[int(shard_index) :: int(shard_count)]
 
 
 def make_simulator(
@@ -329,6 +343,8 @@ def generate_tactile_dataset(
     intrinsics=None,
     store_points: bool = False,
     config_text: str = "",
+    shard_index: int = 0,
+    shard_count: int = 1,
     progress: bool = True,
 ) -> dict:
     """Generate (or resume) one shard of the ``"poke"`` or ``"forearm"`` dataset of thesis §3.3.
@@ -341,6 +357,7 @@ def generate_tactile_dataset(
         gauge_pressure, closed, friction: the gas state (:func:`make_simulator`) and Coulomb friction.
         batch_size: paths simulated together.
         stride, limit: which paths of the grid (:func:`select_paths`; 1, None = the whole grid).
+        shard_index, shard_count: this shard's share of those paths (:func:`select_paths`).
         max_step: largest indenter motion per load step [m].
 
     Returns:
@@ -364,7 +381,7 @@ def generate_tactile_dataset(
         paths = forearm_paths(dict(enumerate(forearm_grid())), indenter, sensor)
     else:
         raise ValueError(f"experiment must be 'poke' or 'forearm', got {experiment!r}")
-    paths = select_paths(paths, stride, limit)
+    paths = select_paths(paths, stride, limit, shard_index, shard_count)
     t0 = time.perf_counter()
     sim = make_simulator(sensor, indenter, gauge_pressure, closed, batch_size, friction, intrinsics)
     out_path.parent.mkdir(parents=True, exist_ok=True)

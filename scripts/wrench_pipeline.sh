@@ -1,0 +1,57 @@
+#!/usr/bin/env bash
+# How the shipped wrench-CNN checkpoints were made (thesis §3.3-3.4), on one many-core GPU machine:
+#   bash scripts/wrench_pipeline.sh generate SECONDS [POKE_WORKERS] [FOREARM_WORKERS]
+#   bash scripts/wrench_pipeline.sh train SECONDS_PER_MODEL OUT_DIR
+# generate: independent `datagen/tactile.py` processes, each working through its own interleaved shards
+#   of the full poking (200 shards) and forearm (40 shards) grids until the time budget is spent; every
+#   shard is resumable and spread over the whole grid, so the finished ones are a fair subset and a
+#   second call carries on where this one stopped. (Any job runner does the same: each shard is one
+#   independent Hydra run, e.g. `python datagen/tactile.py -m shard_index='range(0,200)' shard_count=200`.)
+# train: the three models of §3.4 on the finished shards (trainer.max_time bounds each), then
+#   scripts/evaluate_wrench.py and scripts/benchmark_wrench_cnn.py; results into OUT_DIR.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+phase=${1:?generate or train}
+budget=${2:?seconds}
+
+run_shards() {  # dataset shard_count worker workers deadline
+    local dataset=$1 count=$2 worker=$3 workers=$4 deadline=$5 i left
+    for ((i = worker; i < count; i += workers)); do
+        left=$((deadline - $(date +%s)))
+        ((left > 10)) || break
+        timeout "$left" python datagen/tactile.py dataset="$dataset" stride=1 limit=null \
+            shard_count="$count" shard_index="$i" shard_name="$(printf 'shard_%03d' "$i")" \
+            progress=false hydra.run.dir="logs/datagen_tactile/$dataset/$(printf '%03d' "$i")" || break
+    done
+}
+
+if [[ $phase == generate ]]; then
+    poke_workers=${3:-12}
+    forearm_workers=${4:-4}
+    deadline=$(($(date +%s) + budget))
+    for ((w = 0; w < poke_workers; w++)); do run_shards poke 200 "$w" "$poke_workers" "$deadline" & done
+    for ((w = 0; w < forearm_workers; w++)); do run_shards forearm 40 "$w" "$forearm_workers" "$deadline" & done
+    wait
+    for d in poke forearm; do
+        echo "$d: $(ls data/tactile/$d/*.h5 2>/dev/null | wc -l) finished shards"
+        grep -h "samples," logs/datagen_tactile/$d/*/*.log 2>/dev/null | sed 's/.*INFO\] - //'
+    done
+elif [[ $phase == train ]]; then
+    out=${3:?output directory}
+    mkdir -p "$out"
+    for m in poke forearm combined; do
+        python train.py experiment=wrench_$m trainer=gpu trainer.max_epochs=100000 \
+            trainer.max_time="$(printf '00:00:%02d:%02d' $((budget / 60)) $((budget % 60)))" \
+            logger=csv hydra.run.dir="$out/run_$m" > "$out/train_$m.log" 2>&1
+        grep -E "test/|Error" "$out/train_$m.log"
+        best=$(ls "$out/run_$m/checkpoints"/epoch_*.ckpt | head -1)
+        cp "$best" "$out/wrench_$m.ckpt"
+    done
+    python scripts/evaluate_wrench.py ckpts.poke="$out/wrench_poke.ckpt" ckpts.forearm="$out/wrench_forearm.ckpt" \
+        ckpts.combined="$out/wrench_combined.ckpt" device=cuda hydra.run.dir="$out/eval" 2>&1 | grep -v Warn
+    python scripts/benchmark_wrench_cnn.py device=cuda ckpt_path="$out/wrench_poke.ckpt" out="$out/wrench_cnn_cuda.json"
+    python scripts/benchmark_wrench_cnn.py device=cpu ckpt_path="$out/wrench_poke.ckpt" out="$out/wrench_cnn_cpu_device_host.json"
+else
+    echo "unknown phase $phase (generate | train)" >&2
+    exit 2
+fi
