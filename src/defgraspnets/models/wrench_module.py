@@ -162,42 +162,55 @@ class WrenchRegressionModule(L.LightningModule):
         self.reference_depth = checkpoint.get("reference_depth")
 
     # ------------------------------------------------------------------ inference
-    @torch.no_grad()
+    def _reference_on(self, device: torch.device) -> torch.Tensor:
+        """The stored reference image on ``device``, copied there once (not on every call)."""
+        cached = getattr(self, "_reference_cache", None)
+        if cached is None or cached[0] is not self.reference_depth or cached[1].device != device:
+            ref = torch.as_tensor(self.reference_depth, dtype=torch.float32).to(device)
+            self._reference_cache = (self.reference_depth, ref)
+        return self._reference_cache[1]
+
+    @torch.inference_mode()
     def predict_wrench(self, depth, reference=None):
         """Wrench [N, N m] for raw depth image(s) [m].
 
         Args:
             depth: (H, W) or (B, H, W) depth [m], numpy or torch; NaN = no return.
             reference: the undeformed image(s) of the same PV state, (H, W) or (B, H, W); default:
-                the reference stored from the training datamodule.
+                the reference stored from the training datamodule (kept on the model's device).
 
         Returns:
             (6,) or (B, 6), numpy if ``depth`` is numpy, else a torch tensor on the model's device.
         """
         as_numpy = not isinstance(depth, torch.Tensor)
         d = torch.as_tensor(np.asarray(depth, dtype=np.float32) if as_numpy else depth, dtype=torch.float32)
+        if d.ndim not in (2, 3):
+            raise ValueError(f"depth must have shape (H, W) or (B, H, W), got {tuple(d.shape)}")
         if reference is None:
             if self.reference_depth is None:
                 raise ValueError(
                     "no reference image: pass reference= (the undeformed depth image of the PV state)"
                 )
-            reference = self.reference_depth
-        ref = torch.as_tensor(
-            np.asarray(reference, dtype=np.float32) if not isinstance(reference, torch.Tensor) else reference,
-            dtype=torch.float32,
-        )
-        single = d.ndim == 2
-        if d.ndim not in (2, 3):
-            raise ValueError(f"depth must have shape (H, W) or (B, H, W), got {tuple(d.shape)}")
+            ref = self._reference_on(self.device)
+        else:
+            ref = torch.as_tensor(
+                np.asarray(reference, dtype=np.float32)
+                if not isinstance(reference, torch.Tensor)
+                else reference,
+                dtype=torch.float32,
+            ).to(self.device)
         if ref.shape[-2:] != d.shape[-2:]:
             raise ValueError(f"reference shape {tuple(ref.shape)} does not match depth {tuple(d.shape)}")
-        x = normalize_depth(d.to(self.device), ref.to(self.device), self.hparams.depth_scale)
+        single = d.ndim == 2
+        x = normalize_depth(d.to(self.device, non_blocking=True), ref, self.hparams.depth_scale)
         x = x.reshape(-1, 1, *x.shape[-2:])
         was_training = self.training
-        self.eval()
+        if was_training:
+            self.eval()
         try:
             wrench = self(x)
         finally:
-            self.train(was_training)
+            if was_training:
+                self.train()
         wrench = wrench[0] if single else wrench
         return wrench.cpu().numpy() if as_numpy else wrench
