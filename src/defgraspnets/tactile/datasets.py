@@ -294,7 +294,8 @@ def select_paths(
         raise ValueError(f"stride must be >= 1 and limit >= 1 or None, got {stride!r}, {limit!r}")
     if int(shard_count) < 1 or not 0 <= int(shard_index) < int(shard_count):
         raise ValueError(
-            f"shard_index must lie in [0, shard_count) with shard_count >= 1, got {shard_index!r} of {shard_count!r}"
+            "shard_index must lie in [0, shard_count) with shard_count >= 1, "
+            f"got {shard_index!r} of {shard_count!r}"
         )
     chosen = paths[:: int(stride)]
     chosen = chosen if limit is None else chosen[: int(limit)]
