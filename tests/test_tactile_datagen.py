@@ -57,7 +57,11 @@ def test_shards_split_the_selection_disjointly_and_spread_over_the_grid():
     # every shard reaches both ends of the selection (interleaved, not contiguous blocks)
     for shard in shards:
         assert shard[0].ids[0] < chosen[7].ids[0] and shard[-1].ids[0] > chosen[-8].ids[0]
-    bad_shards = ({"shard_index": 7, "shard_count": 7}, {"shard_index": -1, "shard_count": 2}, {"shard_count": 0})
+    bad_shards = (
+        {"shard_index": 7, "shard_count": 7},
+        {"shard_index": -1, "shard_count": 2},
+        {"shard_count": 0},
+    )
     for bad in bad_shards:
         with pytest.raises(ValueError, match="shard_index"):
             select_paths(paths, **bad)
