@@ -16,10 +16,22 @@ V (inner surface closed by the rim disk) and the rigid housing V_h below the rim
 A :class:`~defgraspnets.tactile.membrane.PVState` (P, V) names the gas state: open uses its gauge
 pressure P - P_atm, closed its product PV (the membrane then inflates until P (V + V_h) = PV).
 
-Indentation: the indenter (sphere or capsule) moves rigidly along a unit direction d. Its depth is
-measured from first contact with the *inflated* membrane (the onset travel is found from the
-indenter's signed distance to the inflated outer surface), and it is displacement-controlled by the
-solver with Coulomb friction mu.
+Indentation: the indenter moves rigidly along a unit direction d. Its depth is measured from first
+contact with the *inflated* membrane (the onset travel is found from the indenter's signed distance to
+the inflated outer surface), and it is displacement-controlled by the solver with Coulomb friction mu.
+Each :mod:`~defgraspnets.tactile.indenters` type is one FEM rigid shape, defined in the indenter's own
+local frame (:func:`fem_shape`):
+
+- :class:`SphereIndenter` -> ``fem.Sphere``, any direction;
+- :class:`CapsuleIndenter` (axis local x) -> ``fem.Capsule`` along x, directions perpendicular to its axis;
+- :class:`BoxIndenter` (prism) -> sharp ``fem.RoundedBox`` (radius 0), pressed along its local +-z (a face
+  first);
+- :class:`RingIndenter` -> closed ``fem.TriangleMesh`` of its 64-sided annulus, pressed along its local
+  +-z (the annular face first).
+
+The FEM body's local z must be its travel axis, so its frame is the indenter's pose frame turned by a
+symmetry Q of the shape that maps local z onto the direction (:meth:`MembraneSimulator._body_frame`);
+such a Q exists exactly for the directions listed.
 
 Wrenches (sensor frame, about the sensor origin, SI): with s_i the clamp's support force on rim vertex
 i, f_i the gas force on vertex i and F_c the force the membrane exerts on the indenter,
@@ -49,18 +61,68 @@ from scipy.spatial.transform import Rotation
 from defgraspnets import fem
 from defgraspnets.tactile.camera import PICO_FLEXX, CameraIntrinsics, DepthCamera, DepthFrame
 from defgraspnets.tactile.indenters import (
+    BoxIndenter,
     CapsuleIndenter,
+    Indenter,
     IndenterError,
     Pose,
+    RingIndenter,
     SphereIndenter,
     WorkspaceError,
     check_workspace,
 )
 from defgraspnets.tactile.membrane import ATMOSPHERIC_PRESSURE, MembraneError, MembraneSensor, PVState
 
-__all__ = ["Indentation", "MembraneSimulator", "TactileReading"]
+__all__ = [
+    "SUPPORTED_INDENTERS",
+    "Indentation",
+    "MembraneSimulator",
+    "TactileReading",
+    "fem_shape",
+    "half_width",
+]
 
 _FAR = 10.0  # m: where idle indenters wait (never touching the membrane)
+
+#: the indenter types the FEM sensor simulates (:func:`fem_shape`)
+SUPPORTED_INDENTERS = (SphereIndenter, CapsuleIndenter, BoxIndenter, RingIndenter)
+
+
+def _check_supported(indenter) -> None:
+    if not isinstance(indenter, SUPPORTED_INDENTERS):
+        names = ", ".join(cls.__name__ for cls in SUPPORTED_INDENTERS)
+        raise IndenterError(f"the FEM sensor supports {names}, got {type(indenter).__name__}")
+
+
+def fem_shape(indenter: Indenter):
+    """The FEM rigid shape of ``indenter`` in the indenter's own local frame (module docstring).
+
+    The ring is its ``local_trimesh`` (64-sided annulus): its surface lies within
+    R_o (1 - cos(pi / 64)) (18 um for R_o = 15 mm) of the analytic ring's.
+
+    Raises:
+        IndenterError: not one of :data:`SUPPORTED_INDENTERS`.
+    """
+    _check_supported(indenter)
+    if isinstance(indenter, SphereIndenter):
+        return fem.Sphere(indenter.radius)
+    if isinstance(indenter, CapsuleIndenter):
+        return fem.Capsule(indenter.radius, 0.5 * indenter.length, direction=(1.0, 0.0, 0.0))
+    if isinstance(indenter, BoxIndenter):
+        return fem.RoundedBox(tuple(indenter.half_extents), radius=0.0)
+    mesh = indenter.local_trimesh()
+    return fem.TriangleMesh(np.asarray(mesh.vertices), np.asarray(mesh.faces))
+
+
+def half_width(indenter: Indenter) -> float:
+    """Radius [m] of the largest ball inside ``indenter`` (half its thinnest width): sphere and capsule R,
+    box half its shortest edge, ring half the thinner of wall and height."""
+    _check_supported(indenter)
+    if isinstance(indenter, (SphereIndenter, CapsuleIndenter)):
+        return float(indenter.radius)
+    if isinstance(indenter, BoxIndenter):
+        return 0.5 * float(min(indenter.size_x, indenter.size_y, indenter.size_z))
+    return 0.5 * float(min(indenter.outer_radius - indenter.inner_radius, indenter.height))
 
 
 @dataclass(frozen=True)
@@ -127,8 +189,9 @@ class MembraneSimulator:
     Args:
         sensor: the membrane (:func:`~defgraspnets.tactile.membrane.build_membrane`; a coarse mesh, e.g.
             ``cap_divisions=8, layers=2``, solves in seconds on a CPU).
-        indenter: a :class:`SphereIndenter` or :class:`CapsuleIndenter` (its geometry; poses come with
-            each :class:`Indentation`).
+        indenter: a :class:`SphereIndenter`, :class:`CapsuleIndenter`, :class:`BoxIndenter` or
+            :class:`RingIndenter` (its geometry; poses come with each :class:`Indentation`, whose direction
+            must suit the shape: module docstring).
         gas: the gas state (:class:`PVState`) and ``closed``: sealed capsule (isothermal, PV constant)
             or open (gauge pressure fixed).
         batch_size: B indentations solved together.
@@ -138,6 +201,7 @@ class MembraneSimulator:
             indenter dimples the membrane, compressed elements get a PSD-projected Hessian and Newton
             converges only linearly, so the engine's default 1e-7 costs many iterations).
         inflation_steps: load steps of the inflation.
+        device: Warp device of the solver and the camera ("cpu", "cuda", ...); None = Warp's default.
 
     The membrane is inflated on construction (:attr:`reference`).
     """
@@ -145,7 +209,7 @@ class MembraneSimulator:
     def __init__(
         self,
         sensor: MembraneSensor,
-        indenter: SphereIndenter | CapsuleIndenter,
+        indenter: Indenter,
         gas: PVState,
         closed: bool = False,
         batch_size: int = 1,
@@ -153,24 +217,18 @@ class MembraneSimulator:
         intrinsics: CameraIntrinsics | None = PICO_FLEXX,
         options: fem.SolverOptions | None = None,
         inflation_steps: int = 2,
+        device: str | None = None,
     ):
         if not isinstance(sensor, MembraneSensor):
             raise TypeError(f"sensor must be a MembraneSensor, got {type(sensor).__name__}")
         if not isinstance(gas, PVState):
             raise TypeError(f"gas must be a PVState, got {type(gas).__name__}")
-        if isinstance(indenter, SphereIndenter):
-            shape = fem.Sphere(indenter.radius)
-        elif isinstance(indenter, CapsuleIndenter):
-            # the indenter capsule's axis is its local x; the FEM body frame maps local x to it
-            shape = fem.Capsule(indenter.radius, 0.5 * indenter.length, direction=(1.0, 0.0, 0.0))
-        else:
-            raise IndenterError(
-                f"the FEM sensor supports sphere and capsule indenters, got {type(indenter).__name__}"
-            )
+        shape = fem_shape(indenter)  # raises IndenterError for unsupported types
         if not (np.isfinite(friction) and friction >= 0):
             raise ValueError(f"friction must be finite and >= 0, got {friction!r}")
         self.sensor = sensor
         self.indenter = indenter
+        self._half_width = half_width(indenter)
         self.gas = gas
         self.closed = bool(closed)
         self.batch_size = int(batch_size)
@@ -183,13 +241,15 @@ class MembraneSimulator:
             [body],
             sensor.material,
             batch_size=self.batch_size,
+            device=device,
             fixed=sensor.clamped_vertices,
             options=options or fem.SolverOptions(linear_solver="direct", rtol=1e-5),
             pressure_surface=fem.PressureSurface(
                 sensor.inner_faces, sensor.rim_center, external_volume=dims.housing_volume
             ),
         )
-        self.camera = None if intrinsics is None else DepthCamera(intrinsics)
+        # the camera ray-casts on the solver's device (the deformed surface is already there)
+        self.camera = None if intrinsics is None else DepthCamera(intrinsics, device=self.solver.device)
         self._inflation_steps = int(inflation_steps)
         ring = sensor.mesh.points[sensor.rim_loop]
         ring = ring[np.argsort(np.arctan2(ring[:, 1], ring[:, 0]))] - sensor.rim_center
@@ -240,7 +300,8 @@ class MembraneSimulator:
         """Travel [m] along the direction at which the indenter first touches the inflated membrane.
 
         Bisection on m(t) = min over outer vertices of the indenter's signed distance when moved by t d
-        (negative: it already penetrates at its start pose, and backs off).
+        (negative: it already penetrates at its start pose, and backs off). Works for every supported
+        shape: it only needs the indenter's signed distance and its :func:`half_width`.
 
         Raises:
             WorkspaceError: the indenter is not clear of the membrane even 4 R_o back, or never touches it.
@@ -252,10 +313,11 @@ class MembraneSimulator:
         def gap(t):
             return float(body.signed_distance(x - t * d).min())
 
-        # march from well outside in steps shorter than the membrane's thickness and the indenter's
-        # radius (so the body cannot pass through the shell unseen), then bisect the first bracket
+        # march from well outside in steps shorter than half the membrane's thickness and half the
+        # indenter's thinnest width (so neither passes through the other unseen), then bisect the first
+        # bracket
         dims = self.sensor.dimensions
-        step = 0.5 * min(dims.thickness, self.indenter.radius)
+        step = 0.5 * min(dims.thickness, self._half_width)
         span = 4.0 * dims.outer_radius
         lo = -span
         if gap(lo) <= 0:
@@ -274,15 +336,35 @@ class MembraneSimulator:
         return 0.5 * (lo + hi)
 
     def _body_frame(self, indentation: Indentation) -> np.ndarray:
-        """4x4 pose of the FEM body whose local z is the indentation direction (travel axis)."""
+        """4x4 pose of the FEM body whose local z is the indentation direction (travel axis).
+
+        The FEM shape is the indenter's in its local frame (:func:`fem_shape`), so the body frame is the
+        pose's rotation R turned by a symmetry Q of the shape with R Q e_z = d: any rotation for the
+        sphere, a turn about the axis for the capsule (d perpendicular to it), and for the box and the
+        ring Q = I (d = local +z) or the half turn about local x, diag(1, -1, -1) (d = local -z).
+
+        Raises:
+            IndenterError: no such symmetry (e.g. a box pressed along its local x, a tilted ring).
+        """
         d = np.asarray(indentation.direction)
         if isinstance(self.indenter, SphereIndenter):
             return fem.bodies.frame_from_z(indentation.pose.position, d)
-        a = indentation.pose.rotation.apply([1.0, 0.0, 0.0])  # capsule axis in the sensor frame
-        if abs(np.dot(a, d)) > 1e-6:
-            raise IndenterError("a capsule indents perpendicular to its axis (its local x)")
         T = np.eye(4)
-        T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = a, np.cross(d, a), d, indentation.pose.position
+        T[:3, 3] = indentation.pose.position
+        if isinstance(self.indenter, CapsuleIndenter):
+            a = indentation.pose.rotation.apply([1.0, 0.0, 0.0])  # capsule axis in the sensor frame
+            if abs(np.dot(a, d)) > 1e-6:
+                raise IndenterError("a capsule indents perpendicular to its axis (its local x)")
+            T[:3, 0], T[:3, 1], T[:3, 2] = a, np.cross(d, a), d
+            return T
+        R = indentation.pose.rotation.as_matrix()
+        along = float(R[:, 2] @ d)  # box and ring: d must be their local +-z
+        if np.linalg.norm(d - along * R[:, 2]) > 1e-6:
+            raise IndenterError(
+                f"a {self.indenter.kind} indenter presses along its local z axis (a flat face first); "
+                f"the direction {d.tolist()} is {np.degrees(np.arccos(min(1.0, abs(along)))):.3g} deg off it"
+            )
+        T[:3, :3] = R if along > 0 else R @ np.diag([1.0, -1.0, -1.0])
         return T
 
     # ------------------------------------------------------------------ indentation
