@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # How the shipped wrench-CNN checkpoints were made (thesis §3.3-3.4), on one many-core GPU machine:
 #   bash scripts/wrench_pipeline.sh generate SECONDS [POKE_WORKERS] [FOREARM_WORKERS]
-#   bash scripts/wrench_pipeline.sh train SECONDS_PER_MODEL OUT_DIR
+#   bash scripts/wrench_pipeline.sh train SECONDS_PER_MODEL OUT_DIR [TRAIN_OVERRIDES...]
 # generate: independent `datagen/tactile.py` processes, each working through its own interleaved shards
 #   of the full poking (200 shards) and forearm (40 shards) grids until the time budget is spent; every
 #   shard is resumable and spread over the whole grid, so the finished ones are a fair subset and a
@@ -38,11 +38,12 @@ if [[ $phase == generate ]]; then
     done
 elif [[ $phase == train ]]; then
     out=${3:?output directory}
+    shift 3  # the rest: overrides for train.py, e.g. data.batch_size=16
     mkdir -p "$out"
     for m in poke forearm combined; do
         python train.py experiment=wrench_$m trainer=gpu trainer.max_epochs=100000 \
             trainer.max_time="$(printf '00:00:%02d:%02d' $((budget / 60)) $((budget % 60)))" \
-            logger=csv hydra.run.dir="$out/run_$m" > "$out/train_$m.log" 2>&1
+            logger=csv hydra.run.dir="$out/run_$m" "$@" > "$out/train_$m.log" 2>&1
         grep -E "test/|Error" "$out/train_$m.log"
         best=$(ls "$out/run_$m/checkpoints"/epoch_*.ckpt | head -1)
         cp "$best" "$out/wrench_$m.ckpt"
