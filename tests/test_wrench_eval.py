@@ -183,3 +183,29 @@ def test_evaluate_script_scores_each_model_on_its_held_out_split(tmp_path):
     }
     nothing = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path)
     assert nothing.returncode != 0 and "no checkpoint given" in nothing.stderr
+
+
+def test_shipped_poke_checkpoint_reads_a_simulated_poke():
+    """checkpoints/wrench_poke.ckpt maps the FEM sensor's depth image of a poke it never saw (the pole,
+    between the grid's depths) to the simulated base wrench."""
+    from defgraspnets.tactile.datasets import make_simulator
+    from defgraspnets.tactile.indenters import SphereIndenter
+    from defgraspnets.tactile.membrane import build_membrane
+
+    module = WrenchRegressionModule.from_checkpoint(
+        Path(__file__).resolve().parents[1] / "checkpoints" / "wrench_poke.ckpt"
+    )
+    sim = make_simulator(
+        build_membrane(cap_divisions=8, layers=2), SphereIndenter(radius=0.01), 1500.0, closed=True
+    )
+    np.testing.assert_allclose(
+        sim.reference.depth.depth, module.reference_depth.numpy(), atol=1e-6, equal_nan=True
+    )
+    readings = sim.indent_series([sim.pole_indentation(0.012)], levels=[0.5, 1.0])
+    for level in readings:
+        r = level[0]
+        assert r.converged
+        predicted = module.predict_wrench(r.depth.depth)
+        force = r.base_wrench[:3]
+        assert abs(force[2]) > 0.2  # a real poke, not a trivially small one
+        assert np.linalg.norm(predicted[:3] - force) < 0.1 * np.linalg.norm(force) + 0.05
