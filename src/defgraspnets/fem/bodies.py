@@ -74,10 +74,13 @@ def frame_from_z(origin, z_axis) -> np.ndarray:
     return T
 
 
-def check_rigid_transform(T, name="pose") -> np.ndarray:
+def check_rigid_transform(T, name="pose", single: bool = False) -> np.ndarray:
+    """``T`` as float64 (..., 4, 4) after checking it holds finite rigid transforms (proper rotation,
+    last row 0 0 0 1); ``single``: exactly one (4, 4) transform."""
     T = np.asarray(T, dtype=np.float64)
-    if T.shape[-2:] != (4, 4) or not np.all(np.isfinite(T)):
-        raise BodyError(f"{name} must be finite 4x4 rigid transforms, got shape {T.shape}")
+    if T.shape[-2:] != (4, 4) or (single and T.shape != (4, 4)) or not np.all(np.isfinite(T)):
+        many = "a finite 4x4 rigid transform" if single else "finite 4x4 rigid transforms"
+        raise BodyError(f"{name} must be {many}, got shape {T.shape}")
     R = T[..., :3, :3]
     err = np.abs(np.einsum("...ji,...jk->...ik", R, R) - np.eye(3)).max()
     if err > 1e-6 or np.any(np.linalg.det(R) < 0):

@@ -40,6 +40,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from defgraspnets.fem.bodies import check_rigid_transform
 from defgraspnets.tactile.indenters import (
     CapsuleIndenter,
     IndenterError,
@@ -93,22 +94,6 @@ class CorrectionGains:
                 raise ValueError(f"CorrectionGains.{name} must be a finite number >= 0, got {v!r}")
 
 
-def _check_pose(T, name: str) -> np.ndarray:
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise ValueError(f"{name} must be a finite (4, 4) homogeneous transform, got shape {T.shape}")
-    R = T[:3, :3]
-    if (
-        not np.allclose(R.T @ R, np.eye(3), atol=1e-6)
-        or np.linalg.det(R) < 0
-        or not np.allclose(T[3], [0, 0, 0, 1])
-    ):
-        raise ValueError(
-            f"{name} is not a rigid transform (rotation not orthonormal or bottom row not 0 0 0 1)"
-        )
-    return T
-
-
 def _clamp(v: np.ndarray, limit: float) -> np.ndarray:
     n = float(np.linalg.norm(v))
     return v if n <= limit else v * (limit / n)
@@ -121,7 +106,7 @@ def pose_correction_step(sensor_pose, wrench, gains: CorrectionGains = Correctio
         sensor_pose: (4, 4) sensor pose in the world.
         wrench: (6,) estimated (F [N], tau [N m]) in the sensor frame, about the sensor origin.
     """
-    S = _check_pose(sensor_pose, "sensor_pose")
+    S = check_rigid_transform(sensor_pose, "sensor_pose", single=True)
     w = np.asarray(wrench, dtype=np.float64)
     if w.shape != (6,) or not np.all(np.isfinite(w)):
         raise ValueError(f"wrench must be a finite (6,) vector [N, N m], got {np.shape(wrench)}")
@@ -280,7 +265,7 @@ def place_fingertip(
     ``command.contact_radius``) along ``command.direction()`` and sits ``command.depth`` [m] beyond first
     contact with the *inflated* membrane of the sensor at ``sensor_pose``."""
     _require_sphere(sim)
-    S = _check_pose(np.eye(4) if sensor_pose is None else sensor_pose, "sensor_pose")
+    S = check_rigid_transform(np.eye(4) if sensor_pose is None else sensor_pose, "sensor_pose", single=True)
     d = command.direction()
     p, n = sim.sensor.dimensions.outer_surface_point(command.phi, command.contact_radius)
     start = p + sim.indenter.radius * n - backoff * d
@@ -300,7 +285,7 @@ def read_fingertip(
     (zero wrench, reference image) and depth 0.
     """
     _require_sphere(sim)
-    S = _check_pose(sensor_pose, "sensor_pose")
+    S = check_rigid_transform(sensor_pose, "sensor_pose", single=True)
     R, p = S[:3, :3], S[:3, 3]
     c = R.T @ (fingertip.center - p)
     d = R.T @ fingertip.direction
@@ -356,7 +341,7 @@ def run_pose_correction(
         raise ValueError(f"steps must be a positive integer, got {steps!r}")
     if render is None:
         render = estimator is not oracle_estimator
-    S = _check_pose(np.eye(4) if sensor_pose is None else sensor_pose, "sensor_pose")
+    S = check_rigid_transform(np.eye(4) if sensor_pose is None else sensor_pose, "sensor_pose", single=True)
     poses, true_w, est_w, contact, depth = [S], [], [], [], []
     stopped = ""
     run = None
@@ -448,10 +433,10 @@ def run_forearm_support(
     if D.ndim != 3 or D.shape[1:] != (4, 4) or len(D) == 0:
         raise ValueError(f"arm_motions must have shape (n, 4, 4), got {np.shape(arm_motions)}")
     for i, m in enumerate(D):
-        _check_pose(m, f"arm_motions[{i}]")
+        check_rigid_transform(m, f"arm_motions[{i}]", single=True)
     if render is None:
         render = estimator is not oracle_estimator
-    S = _check_pose(np.eye(4) if sensor_pose is None else sensor_pose, "sensor_pose")
+    S = check_rigid_transform(np.eye(4) if sensor_pose is None else sensor_pose, "sensor_pose", single=True)
     rest = sim.press_and_move([press], [np.eye(4)], render=render, max_step=max_step)[0][0]
     if not rest.converged:
         raise RuntimeError("the forearm's rest press did not converge")

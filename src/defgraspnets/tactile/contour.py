@@ -40,6 +40,8 @@ from typing import Literal
 
 import numpy as np
 
+from defgraspnets.fem.bodies import check_rigid_transform
+
 __all__ = [
     "ContourCommand",
     "ContourFollower",
@@ -64,16 +66,6 @@ def _unit(v, name: str) -> np.ndarray:
     if n < _EPS:
         raise ValueError(f"{name} must be non-zero")
     return a / n
-
-
-def _pose(pose) -> tuple[np.ndarray, np.ndarray]:
-    t = np.asarray(pose, dtype=np.float64)
-    if t.shape != (4, 4) or not np.isfinite(t).all():
-        raise ValueError(f"sensor pose must be a finite (4, 4) homogeneous transform, got shape {t.shape}")
-    r = t[:3, :3]
-    if not np.allclose(r.T @ r, np.eye(3), atol=1e-6) or np.linalg.det(r) < 0:
-        raise ValueError("sensor pose rotation block is not a proper rotation matrix")
-    return r, t[:3, 3]
 
 
 def _points(points, name: str = "deformed_points") -> np.ndarray:
@@ -269,7 +261,8 @@ def contour_following_step(
         tangent_reference: world direction the tangent should agree with (the previous
             tangent); ``params.travel_direction`` when None.
     """
-    rot, pos = _pose(sensor_pose)
+    pose = check_rigid_transform(sensor_pose, "sensor_pose", single=True)
+    rot, pos = pose[:3, :3], pose[:3, 3]
     pts = _points(deformed_points)
     if not np.isfinite(force):
         raise ValueError(f"force measure must be finite, got {force}")

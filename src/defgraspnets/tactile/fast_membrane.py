@@ -53,6 +53,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
+from defgraspnets.fem.bodies import check_rigid_transform
 from defgraspnets.tactile.force_models import depth_force_proxy
 from defgraspnets.tactile.membrane import MembraneSensor, enclosed_volume
 from defgraspnets.tactile.sdf import SignedDistance
@@ -199,16 +200,6 @@ class FastMembraneState:
         return bool(self.contact_columns.any())
 
 
-def _pose(pose) -> tuple[np.ndarray, np.ndarray]:
-    t = np.asarray(pose, dtype=np.float64)
-    if t.shape != (4, 4) or not np.isfinite(t).all():
-        raise ValueError(f"sensor pose must be a finite (4, 4) transform, got shape {t.shape}")
-    r = t[:3, :3]
-    if not np.allclose(r.T @ r, np.eye(3), atol=1e-6) or np.linalg.det(r) < 0:
-        raise ValueError("sensor pose rotation block is not a proper rotation matrix")
-    return r, t[:3, 3]
-
-
 class FastMembrane:
     """The fast model on one membrane mesh (see the module docstring).
 
@@ -305,7 +296,8 @@ class FastMembrane:
         """Deformed membrane and contact force for the sensor at ``sensor_pose`` (world <- sensor)."""
         if not isinstance(scene, SignedDistance):
             raise TypeError(f"scene must be a SignedDistance, got {type(scene).__name__}")
-        rot, pos = _pose(sensor_pose)
+        pose = check_rigid_transform(sensor_pose, "sensor_pose", single=True)
+        rot, pos = pose[:3, :3], pose[:3, 3]
         t0 = time.perf_counter()
         s = self.num_columns
         u = np.zeros((s, 3))

@@ -32,6 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from defgraspnets.fem.bodies import check_rigid_transform
+
 __all__ = [
     "FEATURE_SIZES",
     "MinMaxNormalizer",
@@ -45,16 +47,6 @@ __all__ = [
 
 #: Size of each named feature block, in the order used by :meth:`TactileFeatures.vector`.
 FEATURE_SIZES = {"centroid": 3, "principal_variances": 3, "e1": 3, "e2": 3, "e3": 3}
-
-
-def _pose(pose) -> tuple[np.ndarray, np.ndarray]:
-    t = np.asarray(pose, dtype=np.float64)
-    if t.shape != (4, 4) or not np.isfinite(t).all():
-        raise ValueError(f"pose must be a finite (4, 4) homogeneous transform, got shape {t.shape}")
-    r = t[:3, :3]
-    if not np.allclose(r.T @ r, np.eye(3), atol=1e-6) or np.linalg.det(r) < 0:
-        raise ValueError("pose rotation block is not a proper rotation matrix")
-    return r, t[:3, 3]
 
 
 def orient_principal_vectors(vectors: np.ndarray) -> np.ndarray:
@@ -120,7 +112,8 @@ def tactile_features(deformed_points, sensor_pose, min_points: int = 3) -> Tacti
         sensor_pose: (4, 4) world <- sensor transform.
         min_points: fewer points than this counts as no contact (defaults are returned).
     """
-    rot, pos = _pose(sensor_pose)
+    pose = check_rigid_transform(sensor_pose, "sensor_pose", single=True)
+    rot, pos = pose[:3, :3], pose[:3, 3]
     p = np.asarray(deformed_points, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3:
         raise ValueError(f"deformed_points must have shape (N, 3), got {p.shape}")
@@ -158,7 +151,7 @@ def end_effector_velocity(poses, dt: float) -> np.ndarray:
     if not dt > 0:
         raise ValueError(f"dt must be > 0 s, got {dt}")
     for k in range(t.shape[0]):
-        _pose(t[k])
+        check_rigid_transform(t[k], f"poses[{k}]", single=True)
     v = np.diff(t[:, :3, 3], axis=0) / dt
     rel = t[1:, :3, :3] @ np.swapaxes(t[:-1, :3, :3], 1, 2)
     omega = Rotation.from_matrix(rel).as_rotvec() / dt
