@@ -87,6 +87,12 @@ def main(cfg: DictConfig) -> None:
                 # the batch iterates in lockstep: its slowest problem sets the pace
                 "newton_iterations_total": int(newton.max()),
                 "newton_iterations_per_step_mean": float(newton.mean() / (i + 1)),
+                "newton_iterations_step_max": [
+                    *record.get("newton_iterations_step_max", []),
+                    int(eq.newton_iterations.max()),
+                ],
+                "newton_iterations_per_problem": newton.tolist(),
+                "status_per_problem": eq.status.tolist(),
                 "krylov_iterations_total": int(np.sum(krylov)),
                 "converged": int(eq.converged.sum()),
                 "status_counts": {str(k): int(v) for k, v in zip(*np.unique(eq.status, return_counts=True))},

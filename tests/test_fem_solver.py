@@ -81,12 +81,12 @@ def test_batched_solves_equal_single_solves():
 def test_linear_solvers_agree():
     forces = np.array([1.0, 1.5])
     results = {}
-    for linear in ("amg", "direct", "cg"):
+    for linear in ("amg", "direct", "cg", "dense"):
         _, solver = _grasp_problem(2, linear_solver=linear)
         eq = _ramp(solver, forces, steps=2)
         eq.require_converged()
         results[linear] = eq
-    for other in ("direct", "cg"):
+    for other in ("direct", "cg", "dense"):
         np.testing.assert_allclose(
             results[other].displacement,
             results["amg"].displacement,
@@ -272,3 +272,73 @@ def test_dalembert_loads_per_problem():
 
 if __name__ == "__main__":
     write_cpu_reference()
+
+
+def test_dense_solver_matches_numpy_with_cholesky_lu_fallback_and_factor_reuse():
+    """solve_dense: SPD problems by Cholesky, an indefinite one by LU, zero right-hand sides skipped, and a
+    second right-hand side on the same matrix solved with the kept factors."""
+    import warp as wp
+
+    from defgraspnets.fem.system import BatchedSystem, BlockPattern
+
+    mesh = fem.TetMesh.box(size=(L, L, L), divisions=(2, 2, 2))
+    pattern = BlockPattern.build(mesh, num_dofs=1)
+    B, n = 3, 3 * pattern.rows_per_problem
+    system = BatchedSystem(pattern, B, "cpu")
+    rng = np.random.default_rng(0)
+    dense = np.zeros((B, n, n))
+    for b in range(B):
+        for r, c in zip(pattern.rows, pattern.cols):
+            if r <= c:
+                block = rng.normal(size=(3, 3))
+                dense[b, 3 * r : 3 * r + 3, 3 * c : 3 * c + 3] = block
+                dense[b, 3 * c : 3 * c + 3, 3 * r : 3 * r + 3] = block.T
+        dense[b] = 0.5 * (dense[b] + dense[b].T)
+        shift = np.abs(dense[b]).sum(axis=1).max() + 1.0
+        # problems 0, 1 positive definite; problem 2 indefinite (eigenvalues of both signs)
+        dense[b] += np.eye(n) * (shift if b < 2 else 0.1)
+    assert np.linalg.eigvalsh(dense[2]).min() < 0 < np.linalg.eigvalsh(dense[2]).max()
+    values = np.stack(
+        [
+            dense[b][3 * r : 3 * r + 3, 3 * c : 3 * c + 3]
+            for b in range(B)
+            for r, c in zip(pattern.rows, pattern.cols)
+        ]
+    )
+    system.values.assign(wp.array(values, dtype=wp.mat33d, device="cpu"))
+    for _ in range(2):
+        rhs = rng.normal(size=(B, n))
+        rhs[1] = 0.0  # a converged problem: skipped, increment zero
+        system.rhs.assign(rhs.reshape(-1, 3))
+        iterations, residual = system.solve_dense()
+        assert iterations == 1 and residual < 1e-10
+        x = system.increment.numpy().reshape(B, n)
+        for b in (0, 2):
+            np.testing.assert_allclose(x[b], np.linalg.solve(dense[b], rhs[b]), rtol=1e-8, atol=1e-12)
+        np.testing.assert_array_equal(x[1], 0.0)
+        assert system._dense_factors["ids"] == [0, 2]  # factors kept for the next right-hand side
+        assert list(system._dense_factors["lu"]) == [1]  # problem 2 (second in the chunk) fell back to LU
+    system.zero()
+    assert not system._dense_factors
+
+
+def test_newton_budget_flags_a_problem_instead_of_holding_up_the_batch():
+    forces = np.array([1.0, 2.0])
+    _, solver = _grasp_problem(2)
+    free = solver.solve(targets={"grip": forces}, initial_fraction=0.25)
+    free.require_converged()
+    assert free.newton_iterations.min() > 3
+    budget = fem.SolverOptions(max_newton_per_solve=3)
+    _, limited = _grasp_problem(2)
+    limited.options = budget
+    eq = limited.solve(targets={"grip": forces}, initial_fraction=0.25)
+    # each problem stops after the increment that spent its budget, at its last converged state
+    assert np.all(eq.status == fem.SolveStatus.NOT_CONVERGED)
+    assert np.all((eq.load_fraction > 0) & (eq.load_fraction < 1.0))
+    assert np.all((eq.newton_iterations >= 3) & (eq.newton_iterations <= 3 + budget.max_newton_iterations))
+    with pytest.raises(RuntimeError, match="NOT_CONVERGED"):
+        eq.require_converged()
+    with pytest.raises(ValueError, match="max_newton_per_solve"):
+        fem.SolverOptions(max_newton_per_solve=-1)
+    with pytest.raises(ValueError, match="friction_rtol"):
+        fem.SolverOptions(friction_rtol=1.0)

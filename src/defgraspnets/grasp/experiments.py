@@ -206,6 +206,10 @@ def experiment_solver_options(**overrides) -> fem.SolverOptions:
         "max_newton_iterations": 25,
         "max_load_bisections": 3,
         "escape_fraction": 0.1,
+        # slip thresholds are what these experiments measure: Coulomb per contact to the Newton
+        # tolerance, and no iteration budget that would flag a slow but holding grasp as lost
+        "friction_rtol": 0.0,
+        "max_newton_per_solve": 0,
     }
     return squeeze_solver_options(**{**base, **overrides})
 

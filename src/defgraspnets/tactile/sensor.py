@@ -73,6 +73,16 @@ from defgraspnets.tactile.indenters import (
 )
 from defgraspnets.tactile.membrane import ATMOSPHERIC_PRESSURE, MembraneError, MembraneSensor, PVState
 
+
+def exact_linear_solver(device) -> str:
+    """The exact linear solver on ``device``: SuperLU on the host for the CPU, batched dense Cholesky on
+    the GPU (host round trips and a single-threaded factorization would dominate there)."""
+    import warp as wp
+
+    wp.init()
+    return "dense" if wp.get_device(device).is_cuda else "direct"
+
+
 __all__ = [
     "SUPPORTED_INDENTERS",
     "Indentation",
@@ -197,9 +207,10 @@ class MembraneSimulator:
         batch_size: B indentations solved together.
         friction: Coulomb coefficient between indenter and membrane.
         intrinsics: the interior camera (default: the pico flexx, 224 x 171); None renders no image.
-        options: FEM :class:`~defgraspnets.fem.SolverOptions` (default: direct solver, rtol 1e-5: where the
-            indenter dimples the membrane, compressed elements get a PSD-projected Hessian and Newton
-            converges only linearly, so the engine's default 1e-7 costs many iterations).
+        options: FEM :class:`~defgraspnets.fem.SolverOptions` (default: the exact solver of the device,
+            :func:`exact_linear_solver`, and rtol 1e-5: where the indenter dimples the membrane, compressed
+            elements get a PSD-projected Hessian and Newton converges only linearly, so the engine's
+            default 1e-7 costs many iterations).
         inflation_steps: load steps of the inflation.
         device: Warp device of the solver and the camera ("cpu", "cuda", ...); None = Warp's default.
 
@@ -243,7 +254,7 @@ class MembraneSimulator:
             batch_size=self.batch_size,
             device=device,
             fixed=sensor.clamped_vertices,
-            options=options or fem.SolverOptions(linear_solver="direct", rtol=1e-5),
+            options=options or fem.SolverOptions(linear_solver=exact_linear_solver(device), rtol=1e-5),
             pressure_surface=fem.PressureSurface(
                 sensor.inner_faces, sensor.rim_center, external_volume=dims.housing_volume
             ),
