@@ -117,6 +117,13 @@ class DefGraspNetsModule(LightningModule):
         if self.hparams.compile and stage == "fit" and self._compiled is None:
             object.__setattr__(self, "_compiled", torch.compile(self.net))
 
+    @property
+    def network(self) -> DefGraspNet | torch.nn.Module:
+        """The network the training step runs: ``net``, or its ``torch.compile`` wrapper after
+        ``setup("fit")`` with ``compile=True`` (tested with ``is None``, not truthiness: a compiled module
+        proxies ``len()``, which raises TypeError for a DefGraspNet)."""
+        return self.net if self._compiled is None else self._compiled
+
     # -------------------------------------------------------------- steps
     def loss(self, batch: GraspGraph, pred: torch.Tensor | None = None):
         """(total, stress, displacement) MSE of standardized targets over the loss nodes.
@@ -124,7 +131,7 @@ class DefGraspNetsModule(LightningModule):
         ``pred``: standardized network outputs (n, 4) if already computed.
         """
         if pred is None:
-            pred = (self._compiled or self.net)(batch)
+            pred = self.network(batch)
         target = self.net.normalized_targets(batch)
         mask_s, mask_d = self.net.loss_mask(batch)
         stress = (pred[mask_s, 0] - target[mask_s, 0]).square().mean()
