@@ -47,7 +47,9 @@ def main(cfg: DictConfig) -> None:
         device=cfg.device,
         target_nodes=cfg.target_nodes,
         mesher=cfg.mesher,
-        solver_options=squeeze_solver_options(linear_solver=cfg.linear_solver),
+        solver_options=squeeze_solver_options(
+            linear_solver=cfg.linear_solver, max_newton_per_solve=cfg.max_newton_per_step
+        ),
         reject_inverted=cfg.reject_inverted,
         overwrite=cfg.overwrite,
         config_text=OmegaConf.to_yaml(cfg, resolve=True),

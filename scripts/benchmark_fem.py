@@ -34,7 +34,9 @@ def main(cfg: DictConfig) -> None:
     mesh = fem.TetMesh.box(size=size, divisions=tuple(cfg.object.divisions), origin=-size / 2, name="box")
     grasps = sample_antipodal_grasps(mesh, num_grasps=cfg.num_grasps, seed=cfg.seed)
     material = fem.Material(cfg.youngs_modulus, cfg.poisson_ratio, cfg.density)
-    options = squeeze_solver_options(linear_solver=cfg.linear_solver)
+    options = squeeze_solver_options(
+        linear_solver=cfg.linear_solver, max_newton_per_solve=cfg.max_newton_per_step
+    )
 
     out = Path(cfg.out)
     out.parent.mkdir(parents=True, exist_ok=True)
