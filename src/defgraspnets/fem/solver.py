@@ -54,8 +54,10 @@ log = logging.getLogger(__name__)
 
 
 LINEAR_SOLVERS = ("auto", "cg", "amg", "direct", "dense")
-# "auto" on CUDA factors problems densely up to this many unknowns (4000 vertices: 1.2 GB per factor)
-DENSE_AUTO_MAX_UNKNOWNS = 12000
+# "auto" factors problems densely up to these many unknowns: on CUDA 4000 vertices (1.2 GB per factor);
+# on the CPU 300 vertices, where dense and AMG-CG break even (2-core CPU, 4 squeeze ramps x 10 steps: 125
+# vertices 2.2 vs 5.2 s (12 ramps x 8), 343 vertices 4.7 vs 4.1 s, 729 vertices 22.0 vs 9.1 s)
+DENSE_AUTO_MAX_UNKNOWNS = {"cuda": 12000, "cpu": 900}
 
 
 @dataclass(frozen=True)
@@ -75,8 +77,8 @@ class SolverOptions:
         linear_solver: "cg" (batched block-Jacobi CG in Warp, on the solver's device), "amg" (CG with a
             smoothed-aggregation multigrid preconditioner, pyamg, on the host), "direct" (SuperLU on the
             host), "dense" (batched dense Cholesky on the solver's device through PyTorch/cuSOLVER, exact;
-            memory 3 x (3R)^2 x 8 bytes per problem in flight) or "auto" (amg on CPU; on CUDA dense up to
-            12000 unknowns, cg above).
+            memory 3 x (3R)^2 x 8 bytes per problem in flight) or "auto" (dense up to 900 unknowns per
+            problem on the CPU and 12000 on CUDA; above that amg on the CPU, cg on CUDA).
         cg_rtol, cg_max_iterations: tightest Krylov tolerance (relative to the right-hand side) and cap; the
             tolerance of each Newton step follows the Eisenstat-Walker forcing term (inexact Newton).
         max_step_fraction: largest vertex or travel motion per Newton iteration, as a fraction of the mesh
@@ -275,10 +277,8 @@ class QuasiStaticSolver:
         self.rows_per_problem = R = N + D
         dev = self.device
         if self.linear_solver == "auto":
-            if not dev.is_cuda:
-                self.linear_solver = "amg"
-            else:
-                self.linear_solver = "dense" if 3 * R <= DENSE_AUTO_MAX_UNKNOWNS else "cg"
+            dense = 3 * R <= DENSE_AUTO_MAX_UNKNOWNS["cuda" if dev.is_cuda else "cpu"]
+            self.linear_solver = "dense" if dense else ("cg" if dev.is_cuda else "amg")
 
         # ---------------- mesh data
         self._rest = wp.array(mesh.points, dtype=wp.vec3d, device=dev)
