@@ -89,6 +89,13 @@ def _state_colors(items):
     return {pv: cmap(i / max(1, len(closed) - 1)) for i, pv in enumerate(closed)}
 
 
+def _state_style(sweep, colors) -> tuple:
+    """(colour, legend label) of one sweep's gas state: closed states by PV, the open capsule in black."""
+    if not sweep.closed:
+        return _OPEN_COLOR, f"PV {sweep.pv:.1f} N m (open)"
+    return colors.get(sweep.pv, _OPEN_COLOR), f"PV {sweep.pv:.1f} N m"
+
+
 def plot_area_sweeps(sweeps, path, quantity: str = "contact_area") -> Path:
     """Fig. 2.7 (``contact_area``: Type C, with the true FEM contact area dashed and half the sphere's
     surface dotted) or Fig. 2.8 (``deformed_area``: Type B + C; open capsule in black) vs indentation."""
@@ -100,8 +107,7 @@ def plot_area_sweeps(sweeps, path, quantity: str = "contact_area") -> Path:
     fig, axes = plt.subplots(1, len(groups), figsize=(4.5 * len(groups), 3.8), squeeze=False)
     for ax, (diameter, items) in zip(axes[0], groups.items()):
         for s in items:
-            color = colors.get(s.pv, _OPEN_COLOR) if s.closed else _OPEN_COLOR
-            label = f"PV {s.pv:.1f} N m" + ("" if s.closed else " (open)")
+            color, label = _state_style(s, colors)
             ax.plot(1e3 * s.indentation, 1e4 * getattr(s, quantity), "o-", color=color, label=label, ms=3)
             if quantity == "contact_area":
                 ax.plot(1e3 * s.indentation, 1e4 * s.true_contact_area, "--", color=color, lw=0.8)
@@ -124,8 +130,7 @@ def plot_force_curves(sweeps, path) -> Path:
     fig, axes = plt.subplots(1, len(groups), figsize=(4.5 * len(groups), 3.8), squeeze=False)
     for ax, (diameter, items) in zip(axes[0], groups.items()):
         for s in items:
-            color = colors.get(s.pv, _OPEN_COLOR) if s.closed else _OPEN_COLOR
-            label = f"PV {s.pv:.1f} N m" + ("" if s.closed else " (open)")
+            color, label = _state_style(s, colors)
             ax.plot(1e3 * s.indentation, s.force, "o", color=color, ms=3, label=label)
             if s.linear is not None:
                 d = np.linspace(0.0, np.nanmax(s.indentation), 20)
