@@ -2,9 +2,11 @@
 
 import numpy as np
 import pytest
+import warp as wp
 from fem_helpers import box_pad, sphere_octant_mesh
 
 from defgraspnets import fem
+from defgraspnets.fem import contact as ck
 
 L = 0.02  # box edge [m]
 
@@ -325,3 +327,70 @@ def test_frictionless_path_carries_no_tangential_force_and_a_twist_is_resisted()
     # less than their stick range)
     assert -moment * (1 + 1e-6) <= torque <= -0.95 * moment
     assert np.linalg.norm(force[:2]) < 0.05 * mu * normal  # a pure twist: no net shear
+
+
+@wp.kernel
+def _shape_distance_kernel(
+    kind: int,
+    points: wp.array(dtype=wp.vec3d),
+    radius: wp.float64,
+    half_length: wp.float64,
+    half_extents: wp.vec3d,
+    gap: wp.array(dtype=wp.float64),
+    normal: wp.array(dtype=wp.vec3d),
+    hessian: wp.array(dtype=wp.mat33d),
+):
+    i = wp.tid()
+    g, n = ck.shape_signed_distance(
+        kind, points[i], radius, half_length, half_extents, wp.uint64(0), points, 0, 1.0
+    )
+    gap[i] = g
+    normal[i] = n
+    hessian[i] = ck.shape_distance_hessian(kind, points[i], n, radius, half_length, half_extents)
+
+
+def _shape_distance(kind, points, radius=0.0, half_length=0.0, half_extents=(0.0, 0.0, 0.0)):
+    p = wp.array(np.asarray(points, dtype=np.float64), dtype=wp.vec3d, device="cpu")
+    n = len(p)
+    g = wp.zeros(n, dtype=wp.float64, device="cpu")
+    nrm = wp.zeros(n, dtype=wp.vec3d, device="cpu")
+    H = wp.zeros(n, dtype=wp.mat33d, device="cpu")
+    wp.launch(
+        _shape_distance_kernel,
+        n,
+        [kind, p, radius, half_length, wp.vec3d(*half_extents), g, nrm, H],
+        device="cpu",
+    )
+    return g.numpy(), nrm.numpy(), H.numpy()
+
+
+@pytest.mark.parametrize(
+    "kind, shape, points",
+    [
+        # sphere r = 5 mm: outside and penetrating
+        (1, dict(radius=0.005), [[0.004, 0.003, 0.002], [0.001, -0.002, 0.0035]]),
+        # capsule: on its side (axis z) and on a cap
+        (2, dict(radius=0.004, half_length=0.01), [[0.003, 0.002, 0.004], [0.001, 0.002, 0.0125]]),
+        # rounded box (pad: half extents of the inner box, 1 mm fillet): on the rim edge, at a corner, on a
+        # flat face, deep inside
+        (
+            4,
+            dict(radius=0.001, half_extents=(0.008, 0.002, 0.009)),
+            [[0.0085, 0.0026, 0.0], [0.0084, 0.0023, 0.0093], [0.001, 0.0027, 0.002], [0.001, 0.0015, 0.002]],
+        ),
+    ],
+)
+def test_contact_normal_turning_matches_finite_differences(kind, shape, points):
+    """d^2 g / dp^2 of the body shapes (the exact penalty Hessian's curvature term) against central
+    differences of their normals n = dg/dp, which themselves match differences of g."""
+    points = np.asarray(points, dtype=np.float64)
+    g, n, H = _shape_distance(kind, points, **shape)
+    h = 1e-7
+    for i in range(3):
+        e = np.zeros(3)
+        e[i] = h
+        gp, n_p, _ = _shape_distance(kind, points + e, **shape)
+        gm, n_m, _ = _shape_distance(kind, points - e, **shape)
+        np.testing.assert_allclose((gp - gm) / (2 * h), n[:, i], atol=1e-6)
+        np.testing.assert_allclose((n_p - n_m) / (2 * h), H[:, :, i], atol=1e-4 * np.abs(H).max() + 1e-6)
+    assert np.abs(H).max() > 100.0  # curvature 1 / (distance to the centre or inner box) is present

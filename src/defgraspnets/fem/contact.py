@@ -159,6 +159,44 @@ def shape_signed_distance(
 
 
 @wp.func
+def shape_distance_hessian(
+    kind: int, p: wp.vec3d, n: wp.vec3d, radius: f64, half_length: f64, half_extents: wp.vec3d
+) -> wp.mat33d:
+    """Hessian of the signed distance g (shape frame) at p, n its gradient from :func:`shape_signed_distance`:
+    the rate at which the contact normal turns as p moves, ``d n / d p``. Planes, flat faces and a rounded
+    box's inside have none; a sphere's normal turns as (I - n n^T) / d, d the distance from its centre (a
+    capsule's side also leaves its axis out), and a rounded box's edge or corner as (P_A - n n^T) / d_out,
+    P_A the axes along which p lies outside the inner box and d_out the distance from it.
+    Triangle meshes are left at zero (their closest feature would be needed)."""
+    zero = f64(0.0)
+    H = wp.mat33d()
+    eye = wp.identity(n=3, dtype=wp.float64)
+    if kind == SPHERE or kind == CAPSULE:
+        d = wp.length(p)
+        P = eye
+        if kind == CAPSULE:
+            q = wp.vec3d(zero, zero, wp.clamp(p[2], -half_length, half_length))
+            d = wp.length(p - q)
+            if wp.abs(p[2]) < half_length:
+                P = eye - wp.outer(wp.vec3d(zero, zero, f64(1.0)), wp.vec3d(zero, zero, f64(1.0)))
+        if d > f64(1e-15):
+            H = (P - wp.outer(n, n)) / d
+    elif kind == ROUNDED_BOX:
+        q = wp.vec3d(
+            wp.abs(p[0]) - half_extents[0], wp.abs(p[1]) - half_extents[1], wp.abs(p[2]) - half_extents[2]
+        )
+        outside = wp.vec3d(wp.max(q[0], zero), wp.max(q[1], zero), wp.max(q[2], zero))
+        d_out = wp.length(outside)
+        if d_out > f64(1e-15):
+            P = wp.mat33d()
+            for i in range(3):
+                if q[i] > zero:
+                    P[i, i] = f64(1.0)
+            H = (P - wp.outer(n, n)) / d_out
+    return H
+
+
+@wp.func
 def body_index(b: int, k: int, num_bodies: int) -> int:
     return b * num_bodies + k
 
@@ -213,6 +251,20 @@ def body_gap(bodies: BodyArrays, b: int, k: int, x: wp.vec3d, travel: f64):
         bodies.query_distance,
     )
     return g, R * n_local
+
+
+@wp.func
+def body_gap_hessian(bodies: BodyArrays, b: int, k: int, x: wp.vec3d, travel: f64, n: wp.vec3d) -> wp.mat33d:
+    """World-frame Hessian d^2 g / dx^2 of body k's signed distance at x (n: the world normal of body_gap)."""
+    bk = b * bodies.num_bodies + k
+    R = bodies.rotation[bk]
+    origin = bodies.translation[bk] + travel * bodies.axis[bk]
+    p = wp.transpose(R) * (x - origin)
+    n_local = wp.transpose(R) * n
+    H = shape_distance_hessian(
+        bodies.kind[k], p, n_local, bodies.radius[k], bodies.half_length[k], bodies.half_extents[k]
+    )
+    return R * H * wp.transpose(R)
 
 
 @wp.func
@@ -345,10 +397,17 @@ def contact_gradient_hessian_kernel(
     num_dofs: int,
     blocks: ContactBlocks,
     active: wp.array(dtype=wp.int32),
+    exact: wp.array(dtype=wp.int32),
     gradient: wp.array(dtype=wp.vec3d),
     hessian: wp.array(dtype=wp.mat33d),
 ):
-    """Add contact and friction gradients (vertex rows and travel-dof rows, component 0) and Hessians."""
+    """Add contact and friction gradients (vertex rows and travel-dof rows, component 0) and Hessians.
+
+    The penalty's Hessian is ``k_g n n^T - f_n d^2g/dx^2`` (and its travel couplings): the second term, the
+    normal turning under a vertex that slides over a curved part of the body (a pad's rounded rim, a sphere),
+    is negative semi-definite and is added only where ``exact[b]`` asks for the exact Hessian. It is as
+    stiff as the tangential elastic support of a slipping contact, so leaving it out costs Newton its
+    quadratic convergence (measured: residual halving per iteration on a tilted Franka grasp)."""
     b, si, k = wp.tid()
     if active[b] == 0:
         return
@@ -377,6 +436,12 @@ def contact_gradient_hessian_kernel(
         H_xx = kg * wp.outer(n, n)
         H_xt = -kg * na * n
         H_tt = kg * na * na
+        if exact[b] != 0:
+            Hg = body_gap_hessian(bodies, b, k, x, t, n)
+            Hga = Hg * a
+            H_xx -= fn * Hg
+            H_xt += fn * Hga
+            H_tt -= fn * wp.dot(a, Hga)
 
     mu_n = bodies.friction[bk] * lag_normal_force[c]
     if mu_n > f64(0.0):
