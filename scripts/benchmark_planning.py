@@ -5,7 +5,23 @@
                                                        # refine 100 x 12 steps <= 5 s within 40 GB
 
 Scoring is timed end to end (finger joint states, multigraph, forward pass, objective) as the median of
-``repeats`` warm runs; refinement runs once after a warm-up. Config: configs/benchmark_planning.yaml.
+``repeats`` warm runs with the stage timer off; then ``repeats`` more runs with
+:class:`~defgraspnets.planning.timing.StageTimer` on (device synchronized around every stage) give
+``score_stages``, seconds per scoring call of
+
+    fingers     finger joint states from the poses (analytic closing distances), finger poses and vertices
+    graph       multigraph construction: contact search, contact-edge padding, node and edge indices
+    features    featurization and normalization (edge vectors, lengths, force channel)
+    network     encode-process-decode forward and output scaling
+    objective   Q and feasibility
+
+Refinement runs once after a warm-up (all grasps, one step, when compiling; else two grasps), with the timer
+on: ``refine_stages`` holds the same stages summed over the run plus ``refine.gradient`` (forward passes with
+autograd), ``refine.backward``, ``refine.trial`` (line-search forward passes without gradients, and the
+initial evaluation) and ``refine.collisions``, each with its calls and seconds per call, and the numbers of
+grasps evaluated; ``refine_evaluations`` summarizes them. With ``compile`` the JSON counts the graphs
+Dynamo compiled in each phase (``compiled_graphs``): after the warm-ups, a phase that compiles is a
+recompilation. Config: configs/benchmark_planning.yaml.
 """
 
 from __future__ import annotations
@@ -20,6 +36,8 @@ os.environ.setdefault("PROJECT_ROOT", str(Path(__file__).resolve().parents[1]))
 import hydra  # noqa: E402
 import numpy as np  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
+
+PREDICTOR_OPTIONS = ("precision", "compile", "activation_checkpointing", "static_shapes", "share_object")
 
 
 def _network(cfg):
@@ -40,6 +58,44 @@ def _network(cfg):
     return net, 0.005, "random weights, placeholder statistics"
 
 
+class _Compiles:
+    """Graphs compiled by Dynamo per phase (``torch._dynamo.utils.counters``)."""
+
+    def __init__(self):
+        self.last = self._graphs()
+        self.phases: dict[str, int] = {}
+
+    @staticmethod
+    def _graphs() -> int:
+        from torch._dynamo.utils import counters
+
+        return int(counters["stats"]["unique_graphs"])
+
+    def mark(self, phase: str) -> None:
+        now = self._graphs()
+        self.phases[phase] = now - self.last
+        self.last = now
+
+
+def _evaluations(stages: dict) -> dict:
+    """Forward / backward evaluation counts and seconds per evaluation of a refinement."""
+
+    def get(name, key):
+        return stages.get(name, {}).get(key, 0)
+
+    return {
+        "forward_grad": get("refine.gradient", "calls"),
+        "forward_grad_s_each": get("refine.gradient", "seconds_per_call"),
+        "backward": get("refine.backward", "calls"),
+        "backward_s_each": get("refine.backward", "seconds_per_call"),
+        "forward_trial": get("refine.trial", "calls"),
+        "forward_trial_s_each": get("refine.trial", "seconds_per_call"),
+        "grasps_grad": get("refine.gradient_grasps", "count"),
+        "grasps_trial": get("refine.trial_grasps", "count"),
+        "collisions_s": get("refine.collisions", "seconds"),
+    }
+
+
 @hydra.main(version_base="1.3", config_path="../configs", config_name="benchmark_planning")
 def main(cfg: DictConfig) -> None:
     import copy
@@ -51,7 +107,10 @@ def main(cfg: DictConfig) -> None:
     from defgraspnets.grasp.sampler import sample_antipodal_grasps
     from defgraspnets.models.predictor import DefGraspNetsPredictor
     from defgraspnets.planning import PRESETS, GraspPlanner
+    from defgraspnets.planning.timing import StageTimer
 
+    if cfg.threads:
+        torch.set_num_threads(int(cfg.threads))
     dev = torch.device(cfg.device)
     cuda = dev.type == "cuda"
 
@@ -75,22 +134,24 @@ def main(cfg: DictConfig) -> None:
     out = Path(cfg.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     for v in cfg.variants:
-        if v.precision == "bf16" and not cuda:
+        v = OmegaConf.to_container(v, resolve=True)
+        if v.get("precision") == "bf16" and not cuda:
             continue
-        predictor = DefGraspNetsPredictor(
-            copy.deepcopy(net),
-            radius,
-            device=dev,
-            precision=v.precision,
-            compile=v.compile,
-            activation_checkpointing=v.activation_checkpointing,
-        )
+        options = {k: v[k] for k in PREDICTOR_OPTIONS if k in v}
+        predictor = DefGraspNetsPredictor(copy.deepcopy(net), radius, device=dev, **options)
         planner = GraspPlanner(predictor, mesh, cfg.youngs_modulus, PRESETS["min_max_stress"], cfg.force)
-        row = {"name": v.name, **OmegaConf.to_container(v)}
+        row = {
+            "name": v["name"],
+            **v,
+            "static_shapes": predictor.static_shapes,
+            "share_object": predictor.share_object,
+        }
+        compiles = _Compiles()
         t = time.perf_counter()
         planner.score(grasps.poses)  # warm-up (compilation)
         sync()
         row["first_score_s"] = time.perf_counter() - t
+        compiles.mark("first_score")
         times = []
         for _ in range(cfg.repeats):
             sync()
@@ -101,23 +162,57 @@ def main(cfg: DictConfig) -> None:
         row["score_s"] = float(np.median(times))
         row["score_s_all"] = times
         row["feasible"] = int(feasible.sum())
-        print(f"{v.name}: score {len(grasps)} grasps {1e3 * row['score_s']:.1f} ms (median of {cfg.repeats})")
+        timer = StageTimer(dev)
+        planner.timer = timer
+        for _ in range(cfg.repeats):
+            planner.score(grasps.poses)
+        planner.timer = None
+        row["score_stages"] = timer.summary(repeats=cfg.repeats)
+        compiles.mark("score")
+        split = ", ".join(f"{k} {1e3 * s['seconds']:.1f}" for k, s in row["score_stages"].items())
+        print(
+            f"{v['name']}: score {len(grasps)} grasps {1e3 * row['score_s']:.1f} ms (median of {cfg.repeats})"
+        )
+        print(f"{v['name']}: score stages [ms]: {split}")
         if cfg.refine:
-            planner.refine(grasps.poses[:2], steps=1)  # warm-up of the backward pass
+            warm = grasps.poses if v.get("compile") else grasps.poses[:2]
+            t = time.perf_counter()
+            planner.refine(warm, steps=1)  # warm-up of the backward pass (compilation)
+            sync()
+            row["refine_warmup_s"] = time.perf_counter() - t
+            compiles.mark("refine_warmup")
             if cuda:
                 torch.cuda.reset_peak_memory_stats(dev)
+            timer = StageTimer(dev)
+            planner.timer = timer
             sync()
             try:
                 r = planner.refine(grasps.poses, steps=cfg.refine_steps)
                 sync()
                 row["refine_s"] = r.seconds
                 row["refine_accepted_steps"] = int((r.accepted > 0).sum())
+                row["refine_stages"] = timer.summary()
+                row["refine_evaluations"] = _evaluations(row["refine_stages"])
                 if cuda:
                     row["refine_peak_memory_gb"] = torch.cuda.max_memory_allocated(dev) / 2**30
-                print(f"{v.name}: refine {len(grasps)} x {cfg.refine_steps} steps {r.seconds:.2f} s")
+                e = row["refine_evaluations"]
+                print(
+                    f"{v['name']}: refine {len(grasps)} x {cfg.refine_steps} steps {r.seconds:.2f} s: "
+                    f"{e['forward_grad']} forward+grad x {e['forward_grad_s_each']:.3f} s, "
+                    f"{e['backward']} backward x {e['backward_s_each']:.3f} s, "
+                    f"{e['forward_trial']} trial forward x {e['forward_trial_s_each']:.3f} s "
+                    f"({e['grasps_trial']} grasps), collisions {e['collisions_s']:.2f} s"
+                )
             except torch.OutOfMemoryError as e:
                 row["refine_error"] = f"out of memory: {str(e)[:200]}"
-                print(f"{v.name}: refine out of memory")
+                print(f"{v['name']}: refine out of memory")
+            finally:
+                planner.timer = None
+            compiles.mark("refine")
+        if predictor.static_shapes:
+            row["contact_capacity"] = {str(k): c for k, c in predictor.contact_capacities.items()}
+        if v.get("compile"):
+            row["compiled_graphs"] = compiles.phases
         result["variants"].append(row)
         out.write_text(json.dumps(result, indent=2) + "\n")
     print(f"wrote {out}")

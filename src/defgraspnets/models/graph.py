@@ -20,6 +20,10 @@ Edge ``(j -> i)`` is stored as column ``[j, i]`` of an index (source row 0, targ
 and ``p_i - p_j`` is "target minus source". Contact-edge *selection* is discrete (computed on detached
 positions); all features are computed from ``pos`` by :class:`MultigraphFeaturizer` inside the model, so they
 are differentiable w.r.t. finger vertex positions (and through them w.r.t. the gripper pose).
+
+Static shapes (``torch.compile`` without recompiles): :func:`build_grasp_batch` can pad the contact edge set
+to a fixed capacity. Padding edges are self-loops on node 0 with ``contact_mask`` False; the network zeroes
+their messages and the force feature does not count them, so every output equals the unpadded one.
 """
 
 from __future__ import annotations
@@ -193,7 +197,8 @@ def contact_pairs(
         centre = op.mean(0)
         x, y = op - centre, fp - centre
         x2, y2 = (x * x).sum(-1), (y * y).sum(-1)
-        tol = 16 * torch.finfo(x.dtype).eps * float(x2.max() + y2.max()) if n and p else 0.0
+        # (a device scalar: no host sync)
+        tol = 16 * torch.finfo(x.dtype).eps * (x2.max() + y2.max()) if n and p else 0.0
         per = max(1, chunk // max(1, n * p))
         parts = []
         for s in range(0, g, per):
@@ -239,7 +244,8 @@ class GraspGraph(Data):
     Node attributes (n = N + 2V per graph): ``pos`` (n, 3) [m], ``node_type`` (n,) long, ``closing_dir``
     (n, 3), ``finger_id`` (n,) long (-1 object, 0/1 finger). Edge sets: ``mesh_edge_index`` (2, E_M),
     ``contact_edge_index`` (2, E_C), both incremented by ``num_nodes`` when batched. Graph attributes (one
-    entry per graph): ``force`` (1,) F_g [N], ``youngs_modulus`` (1,) E [Pa]. Optional: targets ``stress``
+    entry per graph): ``force`` (1,) F_g [N], ``youngs_modulus`` (1,) E [Pa]. Optional: ``contact_mask``
+    (E_C,) bool, False on padding contact edges (see :func:`build_grasp_batch`); targets ``stress``
     (n,) [Pa] and ``displacement`` (n, 3) [m] (finger nodes: rigid finger travel), ``prev_displacement``
     (n, 3) and ``prev_force`` (1,) for multi-step training, ``sample`` (1, 4) long ``(shard, k, g, s)``,
     ``object_id`` (1,) long.
@@ -279,6 +285,11 @@ class GraspGraph(Data):
     def object_mask(self) -> Tensor:
         return self.node_type != NODE_FINGER
 
+    @property
+    def contact_edge_mask(self) -> Tensor | None:
+        """(E_C,) bool, False on padding contact edges; None when the contact edges are not padded."""
+        return getattr(self, "contact_mask", None)
+
 
 def build_grasp_batch(
     obj: ObjectTemplate,
@@ -290,6 +301,7 @@ def build_grasp_batch(
     contact_radius: float = DEFAULT_CONTACT_RADIUS,
     contact_backend: str = "auto",
     pairs: Tensor | None = None,
+    contact_capacity: int | None = None,
 ) -> GraspGraph:
     """G grasp multigraphs of one object, batched (vectorized, no per-graph Python work).
 
@@ -300,9 +312,14 @@ def build_grasp_batch(
         force: (G,) or scalar F_g [N]. youngs_modulus: (G,) or scalar E [Pa].
         contact_radius: eps [m]. contact_backend: see :func:`contact_pairs`.
         pairs: precomputed (C, 3) ``[grasp, object_index, finger_index]`` (finger index in [0, 2V)).
+        contact_capacity: pad the 2C directed contact edges to this many (>= 2C) so that the edge count
+            does not depend on the grasps: the padding edges are self-loops on node 0 and ``contact_mask``
+            (False on them) makes the network ignore them exactly. None: no padding, no ``contact_mask``.
 
     Returns:
         A :class:`GraspGraph` with ``batch`` (n_total,) and ``ptr`` (G + 1,) set (``num_nodes = G (N + 2V)``).
+        Layout of each graph: nodes [object N | finger 0 V | finger 1 V], mesh edges [object E_o | finger 0 |
+        finger 1]; contact edges [C object -> finger | C finger -> object | padding].
     """
     if finger_pos.ndim != 4 or finger_pos.shape[1] != 2 or finger_pos.shape[3] != 3:
         raise ValueError(f"finger_pos must be (G, 2, V, 3), got {tuple(finger_pos.shape)}")
@@ -345,6 +362,14 @@ def build_grasp_batch(
         [torch.stack([obj_node, fin_node]), torch.stack([fin_node, obj_node])], 1
     )
     contact_edge_index = contact_edge_index.reshape(2, -1)
+    contact_mask = None
+    if contact_capacity is not None:
+        real = contact_edge_index.shape[1]
+        if contact_capacity < real:
+            raise ValueError(f"contact_capacity {contact_capacity} < {real} directed contact edges")
+        pad = torch.zeros(2, contact_capacity - real, dtype=torch.long, device=device)
+        contact_edge_index = torch.cat([contact_edge_index, pad], dim=1)
+        contact_mask = torch.arange(contact_capacity, device=device) < real
 
     def per_graph(x):
         return torch.as_tensor(x, dtype=dtype, device=device).reshape(-1).expand(g).clone()
@@ -360,6 +385,8 @@ def build_grasp_batch(
         youngs_modulus=per_graph(youngs_modulus),
         num_nodes=g * n,
     )
+    if contact_mask is not None:
+        out.contact_mask = contact_mask
     out.batch = torch.arange(g, device=device).repeat_interleave(n)
     out.ptr = torch.arange(g + 1, device=device) * n
     return out
@@ -438,16 +465,53 @@ class MultigraphFeaturizer(nn.Module):
     def graph_force(self, g: GraspGraph, force: Tensor | None = None) -> Tensor:
         """(B,) the per-graph force scalar: ``F_g / max(|E^C|, 1)`` or ``F_g``.
 
-        ``|E^C|`` counts undirected contact edges (object-finger pairs), i.e. half the directed edges.
+        ``|E^C|`` counts undirected contact edges (object-finger pairs), i.e. half the directed edges; padding
+        edges (``contact_mask`` False) are not counted.
         """
         f = g.force if force is None else force
         if self.force_feature == "total":
             return f
         node_graph = g.node_graph()
         dst = g.contact_edge_index[1]
+        mask = g.contact_edge_mask
+        half = torch.full_like(dst, 0.5, dtype=f.dtype) if mask is None else mask.to(f.dtype) * 0.5
         count = torch.zeros(f.shape[0], device=f.device, dtype=f.dtype)
-        count.index_add_(0, node_graph[dst], torch.full_like(dst, 0.5, dtype=f.dtype))
+        count.index_add_(0, node_graph.index_select(0, dst), half)
         return f / count.clamp_min(1.0)
+
+    @staticmethod
+    def node_features(
+        node_type: Tensor, pos: Tensor, closing_dir: Tensor, force: Tensor | None = None
+    ) -> Tensor:
+        """(..., 9 [+1]) ``[onehot(type), p, c (, force)]`` of nodes (...,) with positions and closing
+        directions (..., 3); ``force`` (...,) only for ``force_on="nodes"``."""
+        node = [
+            nn.functional.one_hot(node_type, NUM_NODE_TYPES).to(pos.dtype),
+            pos,
+            closing_dir.to(pos.dtype),
+        ]
+        if force is not None:
+            node.append(force.unsqueeze(-1))
+        return torch.cat(node, dim=-1)
+
+    @staticmethod
+    def mesh_edge_features(pos: Tensor, edge_index: Tensor, log_modulus: Tensor) -> Tensor:
+        """(E, 5) ``[p_i - p_j, |p_i - p_j|, log10 E]`` of edges (2, E) into ``pos`` (n, 3); ``log_modulus``
+        (E,) is the edge's ``log10 E`` (zero on finger edges)."""
+        src, dst = edge_index
+        rel = pos.index_select(0, dst) - pos.index_select(0, src)
+        return torch.cat([rel, _safe_norm(rel), log_modulus.unsqueeze(1)], dim=1)
+
+    @staticmethod
+    def contact_edge_features(pos: Tensor, edge_index: Tensor, force: Tensor | None = None) -> Tensor:
+        """(E, 4 [+1]) ``[p_i - p_j, |p_i - p_j| (, force)]`` of contact edges (2, E); ``force`` (E,) only for
+        ``force_on="contact_edges"``."""
+        src, dst = edge_index
+        rel = pos.index_select(0, dst) - pos.index_select(0, src)
+        contact = [rel, _safe_norm(rel)]
+        if force is not None:
+            contact.append(force.unsqueeze(1))
+        return torch.cat(contact, dim=1)
 
     def forward(self, g: GraspGraph, pos: Tensor | None = None, force: Tensor | None = None):
         """Features at positions ``pos`` (default ``g.pos``) and graph forces ``force`` (default ``g.force``).
@@ -457,22 +521,17 @@ class MultigraphFeaturizer(nn.Module):
         """
         pos = g.pos if pos is None else pos
         node_graph = g.node_graph()
-        onehot = nn.functional.one_hot(g.node_type, NUM_NODE_TYPES).to(pos.dtype)
         gforce = self.graph_force(g, force).to(pos.dtype)
-        node = [onehot, pos, g.closing_dir.to(pos.dtype)]
-        if self.force_on == "nodes":
-            node.append(gforce[node_graph].unsqueeze(1))
+        on_nodes = self.force_on == "nodes"
+        node = self.node_features(
+            g.node_type, pos, g.closing_dir, gforce.index_select(0, node_graph) if on_nodes else None
+        )
 
-        src, dst = g.mesh_edge_index
-        rel = pos[dst] - pos[src]
-        length = _safe_norm(rel)
-        log_e = torch.log10(g.youngs_modulus.to(pos.dtype))[node_graph[src]]
-        log_e = torch.where(g.node_type[src] == NODE_FINGER, torch.zeros_like(log_e), log_e)
-        mesh = torch.cat([rel, length, log_e.unsqueeze(1)], dim=1)
+        src = g.mesh_edge_index[0]
+        log_e = torch.log10(g.youngs_modulus.to(pos.dtype)).index_select(0, node_graph.index_select(0, src))
+        log_e = torch.where(g.node_type.index_select(0, src) == NODE_FINGER, torch.zeros_like(log_e), log_e)
+        mesh = self.mesh_edge_features(pos, g.mesh_edge_index, log_e)
 
-        src, dst = g.contact_edge_index
-        rel = pos[dst] - pos[src]
-        contact = [rel, _safe_norm(rel)]
-        if self.force_on == "contact_edges":
-            contact.append(gforce[node_graph[dst]].unsqueeze(1))
-        return torch.cat(node, dim=1), mesh, torch.cat(contact, dim=1)
+        dst = g.contact_edge_index[1]
+        edge_force = None if on_nodes else gforce.index_select(0, node_graph.index_select(0, dst))
+        return node, mesh, self.contact_edge_features(pos, g.contact_edge_index, edge_force)

@@ -11,8 +11,18 @@ Decode (MLP without LayerNorm)
 
 Every MLP has ``hidden_layers`` ReLU layers of width l. Edge MLPs are evaluated with their first layer split
 over the concatenation, ``W [m, h_i, h_j] = W_m m + (W_r h)_i + (W_s h)_j``, so the node terms are computed
-once per node and gathered (same function, ~3x fewer first-layer FLOPs on edges). Aggregation is a
-vectorized ``index_add_`` over edge targets; nothing loops over nodes or edges.
+once per node and gathered (same function, ~3x fewer first-layer FLOPs on edges). Gathers are
+``index_select`` (whose backward is an ``index_add_``, much faster on CUDA than the sort-based backward of
+advanced indexing). Aggregation is a vectorized ``index_add_`` over edge targets; nothing loops over nodes or
+edges.
+
+Exact reformulations for batches of grasps of one object (planning):
+    padded contact edges: ``contact_mask`` (E_C,) zeroes the messages of padding edges, so a contact edge set
+       padded to a fixed capacity gives the same outputs (static shapes for ``torch.compile``);
+    shared object encoding (:meth:`DefGraspNet.forward_shared`): in a one-step prediction the object's node
+       features (type, rest position, zero closing direction) and mesh-edge features (rest geometry,
+       ``log10 E``) are the same in every graph of the batch, so their encoder latents are computed once and
+       broadcast; only finger nodes, finger mesh edges and contact edges are encoded per grasp.
 
 Ablations (thesis Table 7.2) by constructor arguments of :class:`DefGraspNet`:
     V1 ``outputs="separate"``: two networks, one for stress, one for displacement ("joint": one network).
@@ -76,14 +86,19 @@ class EdgeMLP(nn.Module):
 
     def forward(self, edge: Tensor, node: Tensor, edge_index: Tensor) -> Tensor:
         src, dst = edge_index
-        z = self.lin_edge(edge) + self.lin_target(node)[dst] + self.lin_source(node)[src]
+        z = (
+            self.lin_edge(edge)
+            + self.lin_target(node).index_select(0, dst)
+            + self.lin_source(node).index_select(0, src)
+        )
         return self.rest(torch.relu(z))
 
 
 class ProcessorBlock(nn.Module):
     """One message-passing block over mesh and contact edges (see the module docstring).
 
-    Shapes: node (n, l), mesh (E_M, l), contact (E_C, l), indices (2, E_*) -> same shapes.
+    Shapes: node (n, l), mesh (E_M, l), contact (E_C, l), indices (2, E_*) -> same shapes. The optional
+    ``contact_mask`` (E_C,) bool zeroes the messages (and latent updates) of padding contact edges.
     """
 
     def __init__(self, latent: int, hidden_layers: int = 2):
@@ -99,9 +114,19 @@ class ProcessorBlock(nn.Module):
         out = torch.zeros(num_nodes, messages.shape[1], dtype=acc, device=messages.device)
         return out.index_add_(0, target, messages.to(acc)).to(messages.dtype)
 
-    def forward(self, node: Tensor, mesh: Tensor, contact: Tensor, mesh_index: Tensor, contact_index: Tensor):
+    def forward(
+        self,
+        node: Tensor,
+        mesh: Tensor,
+        contact: Tensor,
+        mesh_index: Tensor,
+        contact_index: Tensor,
+        contact_mask: Tensor | None = None,
+    ):
         new_mesh = self.mesh_edge(mesh, node, mesh_index)
         new_contact = self.contact_edge(contact, node, contact_index)
+        if contact_mask is not None:
+            new_contact = torch.where(contact_mask.unsqueeze(1), new_contact, torch.zeros_like(new_contact))
         n = node.shape[0]
         agg = torch.cat(
             [
@@ -142,15 +167,45 @@ class EncodeProcessDecode(nn.Module):
         # intermediate activations in the backward pass (memory ~ L x latents instead of L x MLP layers)
         self.activation_checkpointing = False
 
-    def forward(self, node: Tensor, mesh: Tensor, contact: Tensor, mesh_index: Tensor, contact_index: Tensor):
-        """(n, node_dim), (E_M, ·), (E_C, ·) normalized features -> (n, out_dim)."""
-        h, m, c = self.node_encoder(node), self.mesh_encoder(mesh), self.contact_encoder(contact)
+    def encode_object(self, node: Tensor, mesh: Tensor) -> tuple[Tensor, Tensor]:
+        """Latents (N, l), (E_o, l) of the object part shared by all graphs of a batch (see :meth:`forward`)
+        from its normalized node (N, node_dim) and mesh-edge (E_o, mesh_edge_dim) features."""
+        return self.node_encoder(node), self.mesh_encoder(mesh)
+
+    def forward(
+        self,
+        node: Tensor,
+        mesh: Tensor,
+        contact: Tensor,
+        mesh_index: Tensor,
+        contact_index: Tensor,
+        contact_mask: Tensor | None = None,
+        object_latents: tuple[Tensor, Tensor] | None = None,
+    ):
+        """(n, node_dim), (E_M, ·), (E_C, ·) normalized features -> (n, out_dim).
+
+        ``contact_mask`` (E_C,) bool: False on padding contact edges (their messages are zeroed).
+        ``object_latents``: the :meth:`encode_object` latents ``(N, l), (E_o, l)`` of an object part shared by
+        G graphs whose nodes are ``[object N | per-graph n - N]`` and mesh edges ``[object E_o | per-graph]``;
+        then ``node`` (G, n - N, node_dim) and ``mesh`` (G, E_M / G - E_o, ·) hold only the per-graph parts
+        (same result as encoding the full features, without encoding the object G times).
+        """
+        c = self.contact_encoder(contact)
+        if object_latents is None:
+            h, m = self.node_encoder(node), self.mesh_encoder(mesh)
+        else:
+            h_o, m_o = object_latents
+            g = node.shape[0]
+            h = torch.cat([h_o.expand(g, -1, -1), self.node_encoder(node)], dim=1).flatten(0, 1)
+            m = torch.cat([m_o.expand(g, -1, -1), self.mesh_encoder(mesh)], dim=1).flatten(0, 1)
         recompute = self.activation_checkpointing and torch.is_grad_enabled()
         for block in self.blocks:
             if recompute:
-                h, m, c = checkpoint(block, h, m, c, mesh_index, contact_index, use_reentrant=False)
+                h, m, c = checkpoint(
+                    block, h, m, c, mesh_index, contact_index, contact_mask, use_reentrant=False
+                )
             else:
-                h, m, c = block(h, m, c, mesh_index, contact_index)
+                h, m, c = block(h, m, c, mesh_index, contact_index, contact_mask)
         return self.decoder(h)
 
 
@@ -277,6 +332,8 @@ class DefGraspNet(nn.Module):
         ):
             g = g.to(device)
             node, mesh, contact = self.featurizer(g, self.input_positions(g))
+            if g.contact_edge_mask is not None:
+                contact = contact[g.contact_edge_mask]
             self.node_norm.accumulate(node)
             self.mesh_edge_norm.accumulate(mesh)
             if contact.shape[0]:
@@ -311,8 +368,78 @@ class DefGraspNet(nn.Module):
             self.mesh_edge_norm(mesh).to(net_dtype),
             self.contact_edge_norm(contact).to(net_dtype),
         )
-        outs = [net(node, mesh, contact, g.mesh_edge_index, g.contact_edge_index) for net in self.networks]
+        mask = g.contact_edge_mask
+        outs = [
+            net(node, mesh, contact, g.mesh_edge_index, g.contact_edge_index, mask) for net in self.networks
+        ]
         return (outs[0] if len(outs) == 1 else torch.cat(outs, dim=1)).to(dtype)
+
+    @property
+    def shares_object_encoding(self) -> bool:
+        """Whether :meth:`forward_shared` applies: one-step prediction (object nodes at rest) with the force
+        on contact edges (node features independent of the grasp)."""
+        return self.prediction == "one_step" and self.featurizer.force_on == "contact_edges"
+
+    def shared_features(self, g: GraspGraph, num_object_nodes: int, num_object_edges: int) -> tuple:
+        """Normalized features (network dtype) of :meth:`forward_shared`: object nodes (N, ·) and object mesh
+        edges (E_o, ·) of graph 0, finger nodes (G, n - N, ·), finger mesh edges (G, E_M / G - E_o, ·) and
+        contact edges (E_C, ·)."""
+        if not self.shares_object_encoding:
+            raise ValueError("forward_shared needs one-step prediction with force_on='contact_edges'")
+        fz = self.featurizer
+        G, N, E_o = g.graph_count, num_object_nodes, num_object_edges
+        n, per_graph_edges = g.num_nodes // G, g.mesh_edge_index.shape[1] // G
+        pos, node_type, closing = g.pos, g.node_type, g.closing_dir
+        dtype = pos.dtype
+        net_dtype = self.networks[0].node_encoder[0].weight.dtype
+        # the object part, from graph 0
+        obj_node = self.node_norm(fz.node_features(node_type[:N], pos[:N], closing[:N]))
+        obj_edges = g.mesh_edge_index[:, :E_o]
+        log_e = torch.log10(g.youngs_modulus[:1].to(dtype)).expand(E_o)
+        obj_mesh = self.mesh_edge_norm(fz.mesh_edge_features(pos, obj_edges, log_e))
+        # the per-graph parts: finger nodes, finger mesh edges (log10 E channel zero), contact edges
+        fin_node = fz.node_features(
+            node_type.view(G, n)[:, N:], pos.view(G, n, 3)[:, N:], closing.view(G, n, 3)[:, N:]
+        )
+        fin_edges = g.mesh_edge_index.view(2, G, per_graph_edges)[:, :, E_o:].reshape(2, -1)
+        fin_mesh = fz.mesh_edge_features(pos, fin_edges, pos.new_zeros(fin_edges.shape[1]))
+        gforce = fz.graph_force(g).to(dtype)
+        edge_force = gforce.index_select(0, g.node_graph().index_select(0, g.contact_edge_index[1]))
+        contact = fz.contact_edge_features(pos, g.contact_edge_index, edge_force)
+        fin_node = self.node_norm(fin_node).to(net_dtype)
+        fin_mesh = self.mesh_edge_norm(fin_mesh).to(net_dtype).view(G, per_graph_edges - E_o, -1)
+        contact = self.contact_edge_norm(contact).to(net_dtype)
+        return obj_node.to(net_dtype), obj_mesh.to(net_dtype), fin_node, fin_mesh, contact
+
+    def forward_shared(
+        self, g: GraspGraph, num_object_nodes: int, num_object_edges: int, features: tuple | None = None
+    ) -> Tensor:
+        """:meth:`forward` of G graphs of one object that differ only in their fingers, contacts and forces,
+        with the object part encoded once (see the module docstring); (n, 4) standardized outputs.
+
+        The caller guarantees the layout of :func:`~defgraspnets.models.graph.build_grasp_batch`: every graph
+        has ``n = g.num_nodes / G`` nodes, the first ``num_object_nodes`` being the same object nodes (same
+        rest positions and types), and ``g.mesh_edge_index.shape[1] / G`` mesh edges, the first
+        ``num_object_edges`` being the object's; and all graphs have the same Young's modulus. Needs
+        :attr:`shares_object_encoding` and fitted normalizers (not checked here: no host sync).
+        """
+        if features is None:
+            features = self.shared_features(g, num_object_nodes, num_object_edges)
+        obj_node, obj_mesh, fin_node, fin_mesh, contact = features
+        mask = g.contact_edge_mask
+        outs = [
+            net(
+                fin_node,
+                fin_mesh,
+                contact,
+                g.mesh_edge_index,
+                g.contact_edge_index,
+                mask,
+                object_latents=net.encode_object(obj_node, obj_mesh),
+            )
+            for net in self.networks
+        ]
+        return (outs[0] if len(outs) == 1 else torch.cat(outs, dim=1)).to(g.pos.dtype)
 
     def to_physical(self, out: Tensor, g: GraspGraph) -> tuple[Tensor, Tensor]:
         """Standardized outputs (n, 4) -> von Mises stress (n,) [Pa], displacement (increment) (n, 3) [m]."""

@@ -29,6 +29,8 @@ distances (contact-edge selection is discrete; features and the network are diff
 
 from __future__ import annotations
 
+import contextlib
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,7 +38,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from defgraspnets.models.graph import FingerTemplate, GraspGraph, ObjectTemplate, build_grasp_batch
+from defgraspnets.models.graph import (
+    FingerTemplate,
+    GraspGraph,
+    ObjectTemplate,
+    build_grasp_batch,
+    contact_pairs,
+)
 from defgraspnets.models.meshgraphnet import DefGraspNet
 
 __all__ = ["DefGraspNetsPredictor", "FingerGeometry", "GraspFieldPrediction", "finger_contact_poses"]
@@ -126,9 +134,23 @@ class DefGraspNetsPredictor:
         device: ``"cpu"``, ``"cuda"``, ... contact_backend: see ``contact_pairs``.
         precision: ``"fp32"``; ``"bf16"`` runs the encode-process-decode networks in bfloat16 (graph
             features, normalization and outputs stay fp32; for fast GPU scoring); ``"fp64"`` everything.
-        compile: ``torch.compile`` the networks (dynamic shapes; the first calls compile).
+        compile: ``torch.compile`` the networks (the first calls compile): ``True``, or a dict of
+            ``torch.compile`` options (``backend``, ``mode``, ``dynamic``, ...). Without ``dynamic`` given:
+            ``dynamic=True`` (symbolic shapes), or with ``static_shapes`` the default automatic dynamic
+            (specialized kernels while the shapes stay put).
         activation_checkpointing: recompute each message-passing block's activations in the backward pass
             instead of storing them (forward + backward of many grasps at once, e.g. batched refinement).
+        static_shapes: pad the contact edges of a batch of G grasps to a capacity that only grows (to a power
+            of two with 25 % headroom, remembered per G), so that the network sees the same shapes at every
+            call with the same number of grasps (no recompilation under ``torch.compile``); exact (padding
+            edges carry zero messages). Default: on with ``compile``.
+        share_object: encode the object part of the multigraph once per batch and broadcast it to every
+            grasp (:meth:`DefGraspNet.forward_shared`; exact up to rounding) when the network allows it and
+            all grasps share one Young's modulus.
+
+    ``timer``: an optional callable ``timer(stage)`` returning a context manager (e.g.
+    :class:`defgraspnets.planning.timing.StageTimer`) wrapped around the stages ``fingers``, ``graph``,
+    ``features`` (shared-object path) and ``network`` of each prediction.
     """
 
     def __init__(
@@ -138,8 +160,10 @@ class DefGraspNetsPredictor:
         device: str | torch.device = "cpu",
         contact_backend: str = "auto",
         precision: str = "fp32",
-        compile: bool = False,
+        compile: bool | dict = False,
         activation_checkpointing: bool = False,
+        static_shapes: bool | None = None,
+        share_object: bool = True,
     ):
         if not net.normalized:
             raise ValueError("the network has no normalization statistics (not trained)")
@@ -153,12 +177,21 @@ class DefGraspNetsPredictor:
             self.net.networks.to(torch.bfloat16)
         for network in self.net.networks:
             network.activation_checkpointing = bool(activation_checkpointing)
+        self.static_shapes = bool(compile) if static_shapes is None else bool(static_shapes)
+        self.share_object = bool(share_object)
         if compile:
+            options = dict(compile) if isinstance(compile, dict) else {}
+            if "dynamic" not in options:
+                options["dynamic"] = None if self.static_shapes else True
             for network in self.net.networks:
-                network.compile(dynamic=True)
+                network.compile(**options)
         self.contact_radius = float(contact_radius)
         self.contact_backend = contact_backend
+        self.timer = None
         self._objects: dict[int, tuple[object, ObjectTemplate]] = {}
+        self._on_device: dict[int, tuple[object, object]] = {}
+        self._fingers: dict[int, tuple[FingerGeometry, FingerTemplate]] = {}
+        self._capacity: dict[int, int] = {}
 
     @classmethod
     def from_checkpoint(
@@ -178,6 +211,9 @@ class DefGraspNetsPredictor:
         """Dtype of positions, features and outputs (that of the normalization statistics)."""
         return self.net.node_norm.mean.dtype
 
+    def _stage(self, name: str):
+        return contextlib.nullcontext() if self.timer is None else self.timer(name)
+
     def object_template(self, obj) -> ObjectTemplate:
         """Template of a TetMesh, a ``(points, tets)`` pair or an :class:`ObjectTemplate` (cached)."""
         if isinstance(obj, ObjectTemplate):
@@ -191,6 +227,88 @@ class DefGraspNetsPredictor:
                 t = ObjectTemplate.from_mesh(points, tets)
             self._objects[key] = (obj, t)
         return self._objects[key][1]
+
+    def _device_template(self, t: ObjectTemplate) -> ObjectTemplate:
+        """``t`` with its tensors on the predictor's device and dtype (cached: no copies per call)."""
+        key = id(t)
+        if key not in self._on_device or self._on_device[key][0] is not t:
+            moved = ObjectTemplate(
+                t.points.to(self.device, self.dtype),
+                t.node_type.to(self.device),
+                t.mesh_edge_index.to(self.device),
+            )
+            self._on_device[key] = (t, moved)
+        return self._on_device[key][1]
+
+    def _finger_template(self, fingers: FingerGeometry) -> FingerTemplate:
+        """Finger template of ``fingers`` on the device (cached: the pad's edges are found once)."""
+        key = id(fingers)
+        if key not in self._fingers or self._fingers[key][0] is not fingers:
+            t = FingerTemplate.from_mesh(fingers.vertices, fingers.faces, dtype=self.dtype)
+            t = FingerTemplate(t.vertices.to(self.device), t.mesh_edge_index.to(self.device))
+            self._fingers[key] = (fingers, t)
+        return self._fingers[key][1]
+
+    @property
+    def contact_capacities(self) -> dict[int, int]:
+        """``{batch size: padded contact edge count}`` chosen so far (``static_shapes``)."""
+        return dict(self._capacity)
+
+    def contact_capacity(self, grasps: int, directed_edges: int) -> int:
+        """Padded contact edge count for a batch of ``grasps`` grasps with ``directed_edges`` contact edges:
+        grows (to a power of two with 25 % headroom) only when exceeded, remembered per batch size."""
+        cap = self._capacity.get(grasps, 0)
+        if directed_edges > cap:
+            cap = max(64, 1 << math.ceil(math.log2(1.25 * directed_edges)))
+            self._capacity[grasps] = cap
+        return cap
+
+    def finger_state(
+        self,
+        *,
+        finger_vertices=None,
+        finger_faces=None,
+        closing_direction=None,
+        fingers: FingerGeometry | None = None,
+        finger_pose=None,
+        gripper_pose=None,
+        closing_distance=None,
+    ) -> tuple[Tensor, Tensor, FingerTemplate]:
+        """Finger vertices (G, 2, V, 3) at first contact, closing directions (G, 2, 3) and the finger template
+        from any of the finger inputs (module docstring)."""
+        dev, dt = self.device, self.dtype
+        if finger_vertices is not None:
+            if finger_faces is None or closing_direction is None:
+                raise ValueError("finger_vertices needs finger_faces and closing_direction")
+            fv = _t(finger_vertices, dev, dt)
+            finger = FingerTemplate.from_mesh(np.zeros((fv.shape[2], 3)), finger_faces, dtype=dt)
+            return fv, _t(closing_direction, dev, dt), finger
+        if fingers is None:
+            raise ValueError(
+                "give finger_vertices (+ finger_faces, closing_direction), or fingers= with "
+                "finger_pose or gripper_pose + closing_distance"
+            )
+        finger = self._finger_template(fingers)
+        axis = _t(fingers.closing_axis, dev, dt)
+        if finger_pose is not None:
+            pose = _t(finger_pose, dev, dt)
+            cd = pose[..., :3, :3] @ axis
+        elif gripper_pose is not None and closing_distance is not None:
+            if fingers.open_pose is None:
+                raise ValueError(
+                    "gripper_pose input needs FingerGeometry.open_pose (finger frames in gripper frame)"
+                )
+            pose, cd = finger_contact_poses(
+                _t(gripper_pose, dev, dt),
+                _t(fingers.open_pose, dev, dt),
+                axis,
+                _t(closing_distance, dev, dt),
+            )
+        else:
+            raise ValueError("fingers= needs finger_pose, or gripper_pose and closing_distance")
+        verts = finger.vertices
+        fv = (pose[..., None, :3, :3] @ verts.unsqueeze(-1)).squeeze(-1) + pose[..., None, :3, 3]
+        return fv, cd, finger
 
     def build(
         self,
@@ -206,54 +324,37 @@ class DefGraspNetsPredictor:
         gripper_pose=None,
         closing_distance=None,
     ) -> GraspGraph:
-        """The batched multigraph of G grasps (see the module docstring for the finger inputs)."""
+        """The batched multigraph of G grasps (see the module docstring for the finger inputs); with
+        ``static_shapes`` its contact edges are padded (``contact_mask``)."""
+        with self._stage("fingers"):
+            fv, cd, finger = self.finger_state(
+                finger_vertices=finger_vertices,
+                finger_faces=finger_faces,
+                closing_direction=closing_direction,
+                fingers=fingers,
+                finger_pose=finger_pose,
+                gripper_pose=gripper_pose,
+                closing_distance=closing_distance,
+            )
+        with self._stage("graph"):
+            return self._graph(self.object_template(obj), finger, fv, cd, force, youngs_modulus)
+
+    def _graph(self, template, finger, fv, cd, force, youngs_modulus) -> GraspGraph:
         dev, dt = self.device, self.dtype
-        if finger_vertices is not None:
-            if finger_faces is None or closing_direction is None:
-                raise ValueError("finger_vertices needs finger_faces and closing_direction")
-            fv = _t(finger_vertices, dev, dt)
-            finger = FingerTemplate.from_mesh(np.zeros((fv.shape[2], 3)), finger_faces, dtype=dt)
-            cd = _t(closing_direction, dev, dt)
-        else:
-            if fingers is None:
-                raise ValueError(
-                    "give finger_vertices (+ finger_faces, closing_direction), or fingers= with "
-                    "finger_pose or gripper_pose + closing_distance"
-                )
-            finger = FingerTemplate.from_mesh(fingers.vertices, fingers.faces, dtype=dt)
-            axis = _t(fingers.closing_axis, dev, dt)
-            if finger_pose is not None:
-                pose = _t(finger_pose, dev, dt)
-                cd = pose[..., :3, :3] @ axis
-            elif gripper_pose is not None and closing_distance is not None:
-                if fingers.open_pose is None:
-                    raise ValueError(
-                        "gripper_pose input needs FingerGeometry.open_pose (finger frames in gripper frame)"
-                    )
-                pose, cd = finger_contact_poses(
-                    _t(gripper_pose, dev, dt),
-                    _t(fingers.open_pose, dev, dt),
-                    axis,
-                    _t(closing_distance, dev, dt),
-                )
-            else:
-                raise ValueError("fingers= needs finger_pose, or gripper_pose and closing_distance")
-            verts = finger.vertices.to(dev)
-            fv = (pose[..., None, :3, :3] @ verts.unsqueeze(-1)).squeeze(-1) + pose[..., None, :3, 3]
         g = fv.shape[0]
+        if not isinstance(youngs_modulus, Tensor) and not np.all(np.asarray(youngs_modulus) > 0):
+            raise ValueError("youngs_modulus must be positive [Pa]")
         force = _t(force, dev, dt).reshape(-1).expand(g)
         youngs = _t(youngs_modulus, dev, dt).reshape(-1).expand(g)
-        if not torch.all(youngs > 0):
+        if isinstance(youngs_modulus, Tensor) and not torch.all(youngs > 0):
             raise ValueError("youngs_modulus must be positive [Pa]")
+        obj = self._device_template(template)
+        pairs = contact_pairs(
+            obj.points, fv.reshape(g, -1, 3), self.contact_radius, backend=self.contact_backend
+        )
+        capacity = self.contact_capacity(g, 2 * len(pairs)) if self.static_shapes else None
         return build_grasp_batch(
-            self.object_template(obj),
-            finger,
-            fv,
-            cd,
-            force,
-            youngs,
-            self.contact_radius,
-            self.contact_backend,
+            obj, finger, fv, cd, force, youngs, self.contact_radius, pairs=pairs, contact_capacity=capacity
         )
 
     def predict(
@@ -268,12 +369,24 @@ class DefGraspNetsPredictor:
             **fingers: finger inputs of :meth:`build`.
         """
         template = self.object_template(obj)
+        # one modulus for all grasps (decided on the host): the object part is encoded once per batch
+        shared = (
+            self.share_object
+            and self.net.shares_object_encoding
+            and (
+                np.size(youngs_modulus) == 1
+                if not isinstance(youngs_modulus, Tensor)
+                else youngs_modulus.numel() == 1
+            )
+        )
+        per_grasp = [v for k, v in fingers.items() if k in _PER_GRASP and v is not None]
+        count = len(per_grasp[0]) if per_grasp else 0
         with torch.set_grad_enabled(grad):
-            g = self.build(template, force, youngs_modulus, **fingers)
-            count = g.graph_count
             step = batch_size or count
             if step >= count:
-                return self._predict_batch(g, template.num_nodes)
+                return self._predict_batch(
+                    self.build(template, force, youngs_modulus, **fingers), template, shared
+                )
             parts = []
             for start in range(0, count, step):
                 sub = {
@@ -286,7 +399,7 @@ class DefGraspNetsPredictor:
                     .reshape(-1)
                     .expand(count)[start : start + step]
                 )
-                parts.append(self._predict_batch(self.build(template, f, e, **sub), template.num_nodes))
+                parts.append(self._predict_batch(self.build(template, f, e, **sub), template, shared))
             return GraspFieldPrediction(
                 *(
                     torch.cat([getattr(p, k) for p in parts])
@@ -294,15 +407,25 @@ class DefGraspNetsPredictor:
                 )
             )
 
-    def _predict_batch(self, g: GraspGraph, n_obj: int) -> GraspFieldPrediction:
-        stress, disp = self.net.fields(g)
+    def _predict_batch(self, g: GraspGraph, template: ObjectTemplate, shared: bool) -> GraspFieldPrediction:
+        n_obj = template.num_nodes
+        if shared:
+            n_edges = template.mesh_edge_index.shape[1]
+            with self._stage("features"):
+                features = self.net.shared_features(g, n_obj, n_edges)
+            with self._stage("network"):
+                out = self.net.forward_shared(g, n_obj, n_edges, features)
+                stress, disp = self.net.to_physical(out, g)
+        else:
+            with self._stage("network"):
+                stress, disp = self.net.fields(g)
         count = g.graph_count
         n = g.num_nodes // count
+        dst = g.contact_edge_index[1]
+        mask = g.contact_edge_mask
+        ones = torch.ones_like(dst) if mask is None else mask.long()
         contacts = (
-            torch.zeros(count, dtype=torch.long, device=g.pos.device).index_add_(
-                0, g.batch[g.contact_edge_index[1]], torch.ones_like(g.contact_edge_index[1])
-            )
-            // 2
+            torch.zeros(count, dtype=torch.long, device=g.pos.device).index_add_(0, g.batch[dst], ones) // 2
         )
         return GraspFieldPrediction(
             stress.reshape(count, n)[:, :n_obj], disp.reshape(count, n, 3)[:, :n_obj], contacts

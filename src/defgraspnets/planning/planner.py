@@ -22,6 +22,11 @@ radians commensurate), all grasps in one batch:
 A trial pose is *feasible* only if both fingers reach the object within their travel, the multigraph has
 contact edges, Q is finite, and (optionally) the open gripper does not collide with the object. Each grasp
 returns the best feasible pose it visited, so refinement never returns a worse grasp than it was given.
+
+The gradient is taken w.r.t. the pose coordinates only (``backward(inputs=xi)``: no weight gradients of the
+network). With ``pad_trials`` (default: the predictor's ``static_shapes``) the line-search batches of the
+still-pending grasps are padded to the full batch, so that every forward pass has the same shapes (no
+recompilation under ``torch.compile``). ``timer`` (:mod:`.timing`) times the stages of each evaluation.
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ from defgraspnets.models.predictor import DefGraspNetsPredictor, FingerGeometry,
 
 from .objectives import GraspObjective
 from .pose import perturb_pose
+from .timing import NO_TIMER
 
 __all__ = ["GraspEvaluation", "GraspPlanner", "RefinementResult", "gripper_finger_geometry"]
 
@@ -111,6 +117,9 @@ class GraspPlanner:
             piecewise-smooth in T; a small value, e.g. 1e-4, spreads gradients over nearly-touching points).
         batch_size: grasps per forward pass (None: all at once).
         check_collisions: refinement rejects poses where the open gripper overlaps the object.
+        pad_trials: pad every forward batch to a fixed size (the refinement batch, or ``batch_size``) with
+            copies of its first pose, whose results are dropped (static shapes for ``torch.compile``).
+            None: the predictor's ``static_shapes``.
     """
 
     def __init__(
@@ -124,6 +133,7 @@ class GraspPlanner:
         closing_temperature: float | None = None,
         batch_size: int | None = None,
         check_collisions: bool = True,
+        pad_trials: bool | None = None,
     ):
         if not isinstance(mesh, TetMesh):
             raise TypeError(f"mesh must be a TetMesh, got {type(mesh).__name__}")
@@ -142,6 +152,7 @@ class GraspPlanner:
         self.closing_temperature = closing_temperature
         self.batch_size = batch_size
         self.check_collisions = check_collisions
+        self.pad_trials = predictor.static_shapes if pad_trials is None else bool(pad_trials)
         self.fingers = gripper_finger_geometry(gripper)
         self.template = predictor.object_template(mesh)
         # the object's surface (vertices renumbered) for the finger joint states
@@ -161,6 +172,18 @@ class GraspPlanner:
     @property
     def dtype(self) -> torch.dtype:
         return self.predictor.dtype
+
+    @property
+    def timer(self):
+        """Stage timer shared with the predictor (:mod:`.timing`); None: off."""
+        return self.predictor.timer
+
+    @timer.setter
+    def timer(self, value) -> None:
+        self.predictor.timer = value
+
+    def _stage(self, name: str):
+        return (self.predictor.timer or NO_TIMER)(name)
 
     def _poses(self, poses) -> Tensor:
         T = torch.as_tensor(poses, dtype=self.dtype, device=self.device)
@@ -187,13 +210,25 @@ class GraspPlanner:
             temperature=None if exact else self.closing_temperature,
         )
 
-    def evaluate(self, poses, grad: bool = False, keep_prediction: bool = False) -> GraspEvaluation:
-        """Q of G poses (G, 4, 4) in batches of ``batch_size`` (differentiable with ``grad=True``)."""
+    def evaluate(
+        self, poses, grad: bool = False, keep_prediction: bool = False, pad_to: int | None = None
+    ) -> GraspEvaluation:
+        """Q of G poses (G, 4, 4) in batches of ``batch_size`` (differentiable with ``grad=True``).
+
+        ``pad_to``: with ``pad_trials``, the size every batch is padded to (default: ``batch_size``, or G).
+        """
         T = poses if torch.is_tensor(poses) and poses.requires_grad else self._poses(poses)
+        return self._evaluate(T, grad, keep_prediction, pad_to)
+
+    def _evaluate(
+        self, T: Tensor, grad: bool = False, keep_prediction: bool = False, pad_to: int | None = None
+    ) -> GraspEvaluation:
         parts = []
-        step = self.batch_size or max(len(T), 1)
+        step, size = self.batch_size or max(len(T), 1), None
+        if self.pad_trials:  # every batch padded to one size: batch_size, else pad_to, else G
+            step = size = self.batch_size or pad_to or max(len(T), 1)
         for start in range(0, len(T), step):
-            parts.append(self._evaluate_batch(T[start : start + step], grad, keep_prediction))
+            parts.append(self._evaluate_batch(T[start : start + step], grad, keep_prediction, size))
         if len(parts) == 1:
             return parts[0]
         cat = {
@@ -211,9 +246,15 @@ class GraspPlanner:
             )
         return GraspEvaluation(**cat, prediction=pred)
 
-    def _evaluate_batch(self, T: Tensor, grad: bool, keep_prediction: bool) -> GraspEvaluation:
+    def _evaluate_batch(
+        self, T: Tensor, grad: bool, keep_prediction: bool, pad_to: int | None = None
+    ) -> GraspEvaluation:
+        k = len(T)
+        if pad_to is not None and 0 < k < pad_to:
+            T = torch.cat([T, T[:1].detach().expand(pad_to - k, 4, 4)])
         with torch.set_grad_enabled(grad):
-            closing, touches = self.closing_distances(T, exact=False)
+            with self._stage("fingers"):
+                closing, touches = self.closing_distances(T, exact=False)
             pred = self.predictor.predict(
                 self.template,
                 self.force,
@@ -223,9 +264,15 @@ class GraspPlanner:
                 gripper_pose=T,
                 closing_distance=closing,
             )
-            q = self.objective(pred.stress, pred.displacement)
-            loss = self.objective.sign * q
-        feasible = touches.all(-1) & (pred.contact_edges > 0) & torch.isfinite(q.detach())
+            with self._stage("objective"):
+                if len(T) > k:
+                    closing, touches = closing[:k], touches[:k]
+                    pred = GraspFieldPrediction(
+                        pred.stress[:k], pred.displacement[:k], pred.contact_edges[:k]
+                    )
+                q = self.objective(pred.stress, pred.displacement)
+                loss = self.objective.sign * q
+                feasible = touches.all(-1) & (pred.contact_edges > 0) & torch.isfinite(q.detach())
         return GraspEvaluation(
             q, loss, closing, touches, pred.contact_edges, feasible, pred if keep_prediction else None
         )
@@ -283,12 +330,16 @@ class GraspPlanner:
         scale = torch.tensor([translation_scale] * 3 + [1.0] * 3, dtype=self.dtype, device=self.device)
         gen = torch.Generator(device="cpu").manual_seed(0 if seed is None else int(seed))
 
-        ev = self.evaluate(T)
+        stage, timer = self._stage, self.predictor.timer or NO_TIMER
+        with stage("refine.trial"):
+            ev = self._evaluate(T)
+        timer.count("refine.trial_grasps", G)
         q_now = ev.q.detach().clone()
         loss_now = sign * q_now
         ok_now = ev.feasible.clone()
         if self.check_collisions:
-            ok_now &= torch.as_tensor(~self.collides(T), device=self.device)
+            with stage("refine.collisions"):
+                ok_now &= torch.as_tensor(~self.collides(T), device=self.device)
         best_T, best_loss = T.clone(), torch.where(ok_now, loss_now, torch.full_like(loss_now, math.inf))
         best_q = q_now.clone()
         initial_q = q_now.clone()
@@ -303,9 +354,14 @@ class GraspPlanner:
             it = tqdm(it, desc=f"refine {G} grasps", unit="step", leave=False)
         for k in it:
             xi = torch.zeros(G, 6, dtype=self.dtype, device=self.device, requires_grad=True)
-            ev = self.evaluate(perturb_pose(T, xi * scale), grad=True)
-            (sign * ev.q).sum().backward()
+            with stage("refine.gradient"):
+                ev = self._evaluate(perturb_pose(T, xi * scale), grad=True)
+            timer.count("refine.gradient_grasps", G)
+            with stage("refine.backward"):
+                # d/dxi only: no weight gradients of the network
+                (sign * ev.q).sum().backward(inputs=[xi])
             g = xi.grad.detach()
+            del ev
             gnorm = g.norm(dim=1)
             movable = ok_now & torch.isfinite(gnorm) & (gnorm > 0)
             direction = -g / gnorm.clamp_min(torch.finfo(g.dtype).tiny)[:, None]
@@ -317,12 +373,14 @@ class GraspPlanner:
                 idx = torch.nonzero(pending).squeeze(1)
                 if idx.numel() == 0:
                     break
-                with torch.no_grad():
+                with torch.no_grad(), stage("refine.trial"):
                     trial = perturb_pose(T[idx], (alpha[idx, None] * direction[idx]) * scale)
-                    tev = self.evaluate(trial)
+                    tev = self._evaluate(trial, pad_to=G)
+                timer.count("refine.trial_grasps", len(idx))
                 feasible = tev.feasible.clone()
                 if self.check_collisions:
-                    feasible &= torch.as_tensor(~self.collides(trial), device=self.device)
+                    with stage("refine.collisions"):
+                        feasible &= torch.as_tensor(~self.collides(trial), device=self.device)
                 t_loss = sign * tev.q.detach()
                 decrease = t_loss <= loss_now[idx] - armijo * alpha[idx] * gnorm[idx]
                 success = feasible & decrease

@@ -1,0 +1,232 @@
+"""Exact speed-ups of batched grasp evaluation: padded contact edges (static shapes), the object part encoded
+once per batch, padded line-search batches, no recompilation under torch.compile, and the stage timer."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+import torch
+
+from defgraspnets.grasp.datagen import structured_box
+from defgraspnets.grasp.sampler import sample_antipodal_grasps
+from defgraspnets.models.graph import MultigraphFeaturizer, build_grasp_batch
+from defgraspnets.models.meshgraphnet import DefGraspNet
+from defgraspnets.models.predictor import DefGraspNetsPredictor
+from defgraspnets.planning import PRESETS, GraspPlanner, gripper_finger_geometry, perturb_pose
+from defgraspnets.planning.timing import StageTimer
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def _net(dtype=torch.float64, **kw) -> DefGraspNet:
+    """A small random network with placeholder statistics; the stress statistics are shifted so that the
+    predicted stress is positive (non-zero objective and gradients)."""
+    torch.manual_seed(0)
+    net = DefGraspNet(**{"latent": 16, "num_blocks": 2, **kw})
+    gen = torch.Generator().manual_seed(1)
+    for norm in net.normalizers:
+        x = torch.randn(64, norm.dim, dtype=torch.float64, generator=gen)
+        norm.accumulate(x + 3.0 if norm is net.stress_norm else x)
+        norm.finalize()
+    return net.to(dtype)
+
+
+@pytest.fixture(scope="module")
+def box():
+    return structured_box((0.03, 0.03, 0.03), (4, 4, 4))
+
+
+@pytest.fixture(scope="module")
+def grasps(box):
+    return sample_antipodal_grasps(box, 8, seed=0)
+
+
+def _predict(predictor, box, grasps, grad=False, youngs=2e5):
+    pose = torch.as_tensor(grasps.poses, dtype=predictor.dtype).requires_grad_(grad)
+    out = predictor.predict(
+        box,
+        15.0,
+        youngs,
+        grad=grad,
+        fingers=gripper_finger_geometry(),
+        gripper_pose=pose,
+        closing_distance=grasps.closing_distances,
+    )
+    if not grad:
+        return out, None
+    (out.stress.mean() / 1e3 + out.deformation.mean() * 1e3).backward()
+    return out, pose.grad
+
+
+@pytest.mark.parametrize(
+    "kw", [{}, {"outputs": "separate"}, {"force_feature": "total"}, {"force_on": "nodes"}], ids=str
+)
+def test_padding_and_shared_object_give_the_plain_outputs_and_gradients(box, grasps, kw):
+    """Every combination of padded contact edges and the shared object encoding predicts the fields (and
+    their gradients w.r.t. the gripper poses) of the plain path, in float64."""
+    net = _net(**kw)
+    results = {}
+    for static in (False, True):
+        for share in (False, True):
+            p = DefGraspNetsPredictor(copy.deepcopy(net), 0.005, static_shapes=static, share_object=share)
+            results[static, share] = _predict(p, box, grasps, grad=True)
+            if static:
+                capacity = p.contact_capacities[len(grasps)]
+                assert capacity > 2 * int(results[static, share][0].contact_edges.sum())
+    ref, ref_grad = results[False, False]
+    assert ref.contact_edges.min() > 0 and ref.stress.max() > 0 and ref_grad.abs().max() > 0
+    for out, grad in results.values():
+        torch.testing.assert_close(out.stress, ref.stress, rtol=1e-11, atol=1e-9)
+        torch.testing.assert_close(out.displacement, ref.displacement, rtol=1e-11, atol=1e-18)
+        assert torch.equal(out.contact_edges, ref.contact_edges)
+        torch.testing.assert_close(grad, ref_grad, rtol=1e-9, atol=1e-12 * ref_grad.abs().max().item())
+
+
+def test_shared_object_needs_one_modulus_and_a_one_step_network(box, grasps):
+    """Per-grasp moduli and multi-step networks take the plain path, with the same results."""
+    shared = DefGraspNetsPredictor(_net(), 0.005)
+    plain = DefGraspNetsPredictor(_net(), 0.005, share_object=False)
+    youngs = np.geomspace(1e5, 1e6, len(grasps))
+    torch.testing.assert_close(
+        _predict(shared, box, grasps, youngs=youngs)[0].stress,
+        _predict(plain, box, grasps, youngs=youngs)[0].stress,
+        rtol=0,
+        atol=0,
+    )
+    assert not _net(prediction="multi_step").shares_object_encoding
+    assert not _net(force_on="nodes").shares_object_encoding
+
+
+def test_padded_batch_features(box, grasps):
+    """build_grasp_batch with a contact capacity: the mask marks the real edges, the padding edges are
+    self-loops on node 0, the force channel counts only real edges; too small a capacity is refused."""
+    p = DefGraspNetsPredictor(_net(), 0.005)
+    fv, cd, finger = p.finger_state(
+        fingers=gripper_finger_geometry(),
+        gripper_pose=grasps.poses,
+        closing_distance=grasps.closing_distances,
+    )
+    obj = p.object_template(box)
+    args = (obj, finger, fv, cd, torch.full((len(grasps),), 15.0, dtype=torch.float64), 2e5)
+    plain = build_grasp_batch(*args)
+    real = plain.contact_edge_index.shape[1]
+    padded = build_grasp_batch(*args, contact_capacity=real + 10)
+    assert padded.contact_mask.sum() == real and not padded.contact_mask[real:].any()
+    assert torch.equal(padded.contact_edge_index[:, :real], plain.contact_edge_index)
+    assert (padded.contact_edge_index[:, real:] == 0).all()
+    fz = MultigraphFeaturizer()
+    torch.testing.assert_close(fz.graph_force(padded), fz.graph_force(plain), rtol=0, atol=0)
+    _, _, contact = fz(padded)
+    torch.testing.assert_close(contact[:real], fz(plain)[2], rtol=0, atol=0)
+    with pytest.raises(ValueError, match="contact_capacity"):
+        build_grasp_batch(*args, contact_capacity=real - 2)
+    # the capacity grows by powers of two with headroom and never shrinks for a batch size
+    assert p.contact_capacity(8, 1000) == 2048 and p.contact_capacity(8, 100) == 2048
+    assert p.contact_capacity(8, 2100) == 4096 and p.contact_capacity(3, 10) == 64
+
+
+def test_padded_line_search_and_chunks_refine_identically(box, grasps):
+    """pad_trials (line-search batches padded to the full batch, chunks to batch_size) changes nothing."""
+    runs = {}
+    for pad in (False, True):
+        for batch_size in (None, 3):
+            planner = GraspPlanner(
+                DefGraspNetsPredictor(_net(), 0.005, static_shapes=pad),
+                box,
+                2e5,
+                PRESETS["min_max_stress"],
+                batch_size=batch_size,
+                pad_trials=pad,
+            )
+            runs[pad, batch_size] = planner.refine(grasps.poses, steps=3)
+    ref = runs[False, None]
+    assert (ref.accepted > 0).any() and np.any(ref.q < ref.initial_q)
+    for r in runs.values():
+        np.testing.assert_array_equal(r.accepted, ref.accepted)
+        np.testing.assert_allclose(r.q_history, ref.q_history, rtol=1e-10)
+        np.testing.assert_allclose(r.poses, ref.poses, rtol=0, atol=1e-12)
+
+
+def test_refinement_gradient_is_that_of_the_pose_only(box, grasps):
+    """The refinement's backward pass fills no weight gradients of the network."""
+    predictor = DefGraspNetsPredictor(_net(), 0.005)
+    planner = GraspPlanner(predictor, box, 2e5, PRESETS["min_max_stress"])
+    planner.refine(grasps.poses[:2], steps=1)
+    assert all(p.grad is None for p in predictor.net.parameters())
+
+
+def _refine_compile_counts(box, grasps, backend):
+    from torch._dynamo.testing import CompileCounterWithBackend
+
+    torch._dynamo.reset()
+    counter = CompileCounterWithBackend(backend)
+    predictor = DefGraspNetsPredictor(
+        _net(torch.float32), 0.005, compile={"backend": counter}, activation_checkpointing=True
+    )
+    assert predictor.static_shapes
+    planner = GraspPlanner(predictor, box, 2e5, PRESETS["min_max_stress"])
+    T = torch.as_tensor(grasps.poses, dtype=torch.float32)
+    planner.evaluate(T)  # first evaluation without gradients
+    xi = torch.zeros(len(T), 6, requires_grad=True)
+    planner.evaluate(perturb_pose(T, xi), grad=True).q.sum().backward(inputs=[xi])  # and with
+    warm = counter.frame_count
+    r = planner.refine(grasps.poses, steps=3)
+    planner.score(grasps.poses)
+    torch._dynamo.reset()
+    return warm, counter.frame_count, r
+
+
+def test_compiled_refinement_does_not_recompile(box, grasps):
+    """With torch.compile (AOT autograd, no code generation: fast) and static shapes, the line search's
+    shrinking batches and the changing contact edges compile nothing after the first evaluations."""
+    warm, total, r = _refine_compile_counts(box, grasps, "aot_eager")
+    assert (r.accepted > 0).any() and (r.accepted[1:] > 0).any()  # the line search ran
+    assert warm == 2 and total == warm  # no grad + grad, then nothing
+
+
+@pytest.mark.slow
+def test_compiled_refinement_does_not_recompile_with_inductor(box, grasps):
+    """Same with the default Inductor backend (C++ code generation on the CPU: about a minute)."""
+    warm, total, _ = _refine_compile_counts(box, grasps, "inductor")
+    assert warm == 2 and total == warm
+
+
+def test_stage_timer_splits_scoring_and_counts_refinement(box, grasps):
+    predictor = DefGraspNetsPredictor(_net(), 0.005)
+    planner = GraspPlanner(predictor, box, 2e5, PRESETS["min_max_stress"])
+    timer = StageTimer("cpu")
+    planner.timer = timer
+    assert predictor.timer is timer
+    planner.score(grasps.poses)
+    s = timer.summary()
+    assert set(s) == {"fingers", "graph", "features", "network", "objective"}
+    assert all(v["seconds"] > 0 for v in s.values())
+    assert s["fingers"]["calls"] == 2 and s["network"]["calls"] == 1  # fingers: joint states, then pads
+    timer.reset()
+    r = planner.refine(grasps.poses, steps=2)
+    s = timer.summary()
+    trials = int(np.sum([np.count_nonzero(r.accepted[k] >= 0) for k in range(2)]))
+    assert s["refine.gradient"]["calls"] == 2 and s["refine.backward"]["calls"] == 2
+    assert s["refine.gradient_grasps"]["count"] == 2 * len(grasps)
+    assert s["refine.trial"]["calls"] >= 3 and s["refine.trial_grasps"]["count"] >= len(grasps) + trials // 2
+    assert s["network"]["calls"] == s["refine.gradient"]["calls"] + s["refine.trial"]["calls"]
+    planner.timer = None
+    assert predictor.timer is None
+
+
+def test_shipped_checkpoint_predicts_the_same_on_every_path(box, grasps):
+    """checkpoints/defgraspnets_box30.ckpt: padded contact edges and the shared object encoding reproduce the
+    plain path's fields (float32 rounding)."""
+    from pathlib import Path
+
+    ckpt = Path(__file__).resolve().parents[1] / "checkpoints" / "defgraspnets_box30.ckpt"
+    outs = [
+        _predict(DefGraspNetsPredictor.from_checkpoint(ckpt, **kw), box, grasps, youngs=2.385e6)[0]
+        for kw in ({"share_object": False}, {}, {"static_shapes": True})
+    ]
+    assert outs[0].stress.mean() > 0
+    for out in outs[1:]:
+        torch.testing.assert_close(out.stress, outs[0].stress, rtol=1e-5, atol=1e-3)
+        torch.testing.assert_close(out.displacement, outs[0].displacement, rtol=1e-5, atol=1e-10)
