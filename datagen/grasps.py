@@ -4,6 +4,7 @@
     python datagen/grasps.py object=ellipsoid_20x20x20 num_grasps=20 device=cuda
     python datagen/grasps.py -m object=cuboid_30x30x30,ellipsoid_20x20x20,cylinder_r20_h40
     python datagen/grasps.py -m object=cuboid_50x50x50 shard_count=4 shard_index=0,1,2,3
+    python datagen/grasps.py experiments=[pickup,reorientation,linear,angular]   # + DefGraspSim metrics
 
 Config: configs/datagen/grasps.yaml (thesis-scale values in its comments). All logic lives in
 :func:`defgraspnets.grasp.datagen.generate_object_shards`; re-running resumes unfinished shards.
@@ -26,6 +27,7 @@ log = logging.getLogger("datagen.grasps")
 @hydra.main(version_base="1.3", config_path="../configs", config_name="datagen/grasps")
 def main(cfg: DictConfig) -> None:
     from defgraspnets.grasp.datagen import generate_object_shards, structured_box
+    from defgraspnets.grasp.experiments import experiment_solver_options
     from defgraspnets.grasp.squeeze import squeeze_solver_options
 
     obj = cfg.object
@@ -54,12 +56,18 @@ def main(cfg: DictConfig) -> None:
         overwrite=cfg.overwrite,
         config_text=OmegaConf.to_yaml(cfg, resolve=True),
         progress=cfg.progress,
+        experiments=cfg.experiments,  # a list, or one name
+        experiment_settings=OmegaConf.to_container(cfg.experiment_settings, resolve=True),
+        experiment_options=experiment_solver_options(linear_solver=cfg.experiment_linear_solver),
+        directions_per_solver=cfg.experiment_directions_per_solver,
     )
     for r in results:
         if r.skipped:
             log.info("%s: already finished (overwrite=true regenerates it)", r.path)
         else:
             log.info("%s: %d/%d squeeze ramps solved, %.1f s", r.path, r.solved, r.total, r.seconds)
+            if r.experiments:
+                log.info("%s: experiment entries: %s", r.path.name, r.experiment_summary())
 
 
 if __name__ == "__main__":

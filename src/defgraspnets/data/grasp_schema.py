@@ -27,9 +27,46 @@ One file per object shard, named ``<object>__shard<i>of<n>.h5``. All quantities 
 
 Entries with ``status != 0`` are never training data; their fields may be NaN.
 
+**Optional group /experiments** (an addition within schema ``/1``: readers of ``/1`` that predate it ignore
+it, and shards without it stay valid; :attr:`GraspShard.has_experiments`). Written when the generator runs
+the DefGraspSim experiments (thesis §6.4-6.5, :mod:`defgraspnets.grasp.experiments`) for every ``(k, g)``;
+``D`` acceleration directions, ``A`` reorientation axes, ``J`` reorientation angles, ``X`` = 4 experiments
+in the order :data:`EXPERIMENT_NAMES` = (pickup, reorientation, linear, angular)::
+
+    /experiments               attrs: names (JSON list of the experiments run), settings (JSON of
+                                      ExperimentSettings)
+    /experiments/directions    (D, 3)        float64  linear / angular test directions, gripper frame
+    /experiments/axes          (A, 3)        float64  reorientation axes, world frame
+    /experiments/angles        (J,)          float64  reorientation angles [rad]
+    /experiments/status        (K, G, X)     int8     ExperimentStatus per experiment: 0 OK, 1 NOT_RUN,
+                                                      2 NOT_GRASPED, 3 LOST, 4 ERROR (see the enum)
+    /experiments/metrics/<m>   (K, G)        float64  the 7 metrics of §6.5, m in METRIC_NAMES (units in
+                                                      the name; pickup_success is 1.0 / 0.0)
+    /experiments/features/<f>  (K, G)        float64  the 7 features of Table 6.2, f in FEATURE_NAMES
+    /experiments/pickup/grasp_force (K, G)   float64  F_p = s m g / mu [N]
+    /experiments/pickup/slip_force  (K, G)   float64  F_slip of the reorientation [N]
+    /experiments/pickup/slide       (K, G)   float64  pad slide at the end of the pickup [m]
+    /experiments/pickup/failure     (K, G)   int8     GraspFailure of the pickup (0 held)
+    /experiments/reorientation/held          (K, G, A, J) bool     held in that state (and all before it)
+    /experiments/reorientation/max_von_mises (K, G, A, J) float64  largest element stress [Pa]; NaN not held
+    /experiments/reorientation/failure       (K, G, A)    int8     GraspFailure per axis
+    /experiments/<linear|angular>/threshold     (K, G, D) float64  loss-of-grasp acceleration per direction
+                                                       [m/s^2 | rad/s^2]; the test's limit if never lost
+    /experiments/<linear|angular>/failure       (K, G, D) int8     GraspFailure per direction (0: limit held)
+    /experiments/<linear|angular>/solver_status (K, G, D) int8     fem.SolveStatus at the end of the ramp
+
+A metric is NaN wherever its experiment did not measure it, never a made-up number, and the experiment's
+status says why: NOT_RUN (not selected), NOT_GRASPED (the squeeze to the experiment's grasp force found no
+equilibrium: nothing measured, features NaN too), LOST (the grasp was lost before the metric's state: a failed
+pickup has ``pickup_success`` 0.0 and NaN stress / deformation / strain energy, as in the thesis; a
+reorientation that holds no state has NaN controllability), ERROR (the experiment raised; logged). Codes
+-1 (int8) and NaN mark directions / axes an experiment did not test. The pickup metrics belong to ``pickup``,
+``deformation_controllability_m`` to ``reorientation``, the instabilities to ``linear`` / ``angular``.
+
 Writing (:class:`GraspShardWriter`) is incremental, resumable and atomic: the static groups are written to
-``<name>.partial.h5`` when the shard is created, each ``(k, g)`` squeeze result is written and flushed as
-it arrives and then marked in ``/progress/done`` (K, G); :meth:`GraspShardWriter.finalize` checks that every
+``<name>.partial.h5`` when the shard is created, each ``(k, g)`` squeeze result (with its experiment
+results, when the shard has ``/experiments``) is written and flushed as it arrives and then marked in
+``/progress/done`` (K, G); :meth:`GraspShardWriter.finalize` checks that every
 entry is done, drops ``/progress``, fsyncs and renames the file to ``<name>.h5``. A killed generator never
 leaves a final file behind, and re-opening the partial file resumes at the first undone entry. Reading
 (:class:`GraspShard`) validates the schema version, every dataset's presence, shape and dtype, and raises
@@ -39,17 +76,25 @@ leaves a final file behind, and re-opening the partial file resumes at the first
 from __future__ import annotations
 
 import datetime as _dt
+import json
 import os
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from enum import IntEnum
 from pathlib import Path
 
 import h5py
 import numpy as np
 
 __all__ = [
+    "EXPERIMENT_NAMES",
+    "FEATURE_NAMES",
+    "METRIC_NAMES",
     "SCHEMA_VERSION",
     "STATUS_SOLVED",
+    "ExperimentLayout",
+    "ExperimentStatus",
     "GraspShard",
     "GraspShardWriter",
     "GripperFingers",
@@ -64,6 +109,49 @@ STATUS_SOLVED = 0
 _COMPRESSION = "lzf"
 _SHARD_NAME = re.compile(r"^(?P<object>.+)__shard(?P<index>\d+)of(?P<count>\d+)\.h5$")
 _OBJECT_SOURCES = ("primitive", "real")
+
+
+# the optional /experiments group (module docstring); names as in defgraspnets.grasp (metrics, features)
+EXPERIMENT_NAMES = ("pickup", "reorientation", "linear", "angular")
+METRIC_NAMES = (
+    "pickup_success",
+    "max_von_mises_stress_pa",
+    "max_deformation_m",
+    "strain_energy_j",
+    "linear_instability_m_s2",
+    "angular_instability_rad_s2",
+    "deformation_controllability_m",
+)
+FEATURE_NAMES = (
+    "pure_dist",
+    "perp_dist",
+    "num_contacts",
+    "edge_dist",
+    "squeeze_dist",
+    "gripper_sep",
+    "grav_align",
+)
+# the experiment that measures each metric
+METRIC_EXPERIMENT = {
+    "pickup_success": "pickup",
+    "max_von_mises_stress_pa": "pickup",
+    "max_deformation_m": "pickup",
+    "strain_energy_j": "pickup",
+    "linear_instability_m_s2": "linear",
+    "angular_instability_rad_s2": "angular",
+    "deformation_controllability_m": "reorientation",
+}
+_UNTESTED = -1  # int8 fill of failure / solver-status codes of directions and axes not tested
+
+
+class ExperimentStatus(IntEnum):
+    """Outcome of one experiment of one ``(k, g)`` entry (``/experiments/status``)."""
+
+    OK = 0  # ran; its metrics are measured values
+    NOT_RUN = 1  # not selected for this shard: its metrics are NaN
+    NOT_GRASPED = 2  # the squeeze to the experiment's grasp force found no equilibrium: nothing measured
+    LOST = 3  # the grasp was lost before the metric's state (failed pickup; reorientation holding no state)
+    ERROR = 4  # the experiment raised an error (logged by the generator): nothing measured
 
 
 class ShardSchemaError(ValueError):
@@ -154,6 +242,171 @@ class GripperFingers:
         """(..., V, 3) vertices in the object frame for finger poses ``pose`` (..., 4, 4): ``R v + t``."""
         pose = np.asarray(pose)
         return np.einsum("...ij,vj->...vi", pose[..., :3, :3], self.vertices) + pose[..., None, :3, 3]
+
+
+@dataclass
+class ExperimentLayout:
+    """What a shard's ``/experiments`` group holds besides the per-entry results: the experiments run, their
+    settings, and the directions they test (module docstring).
+
+    Attributes:
+        names: the experiments run, a subset of :data:`EXPERIMENT_NAMES` in that order.
+        settings: ``ExperimentSettings`` as a JSON-ready dict (stored as JSON).
+        directions: (D, 3) linear / angular test directions, gripper frame.
+        axes: (A, 3) reorientation axes, world frame. angles: (J,) reorientation angles [rad].
+    """
+
+    names: tuple[str, ...]
+    settings: dict
+    directions: np.ndarray
+    axes: np.ndarray
+    angles: np.ndarray
+
+    def __post_init__(self):
+        if isinstance(self.names, str):
+            raise ValueError(f"experiment names must be a sequence of names, got the string {self.names!r}")
+        names = tuple(str(n) for n in self.names)
+        unknown = [n for n in names if n not in EXPERIMENT_NAMES]
+        if unknown or not names:
+            raise ValueError(f"experiments {list(names)}: choose one or more of {list(EXPERIMENT_NAMES)}")
+        self.names = tuple(n for n in EXPERIMENT_NAMES if n in names)
+        self.settings = dict(self.settings)
+        self.directions = np.asarray(self.directions, dtype=np.float64).reshape(-1, 3)
+        self.axes = np.asarray(self.axes, dtype=np.float64).reshape(-1, 3)
+        self.angles = np.asarray(self.angles, dtype=np.float64).reshape(-1)
+        if min(len(self.directions), len(self.axes), len(self.angles)) == 0:
+            raise ValueError("experiment directions, axes and angles must not be empty")
+
+    @property
+    def settings_json(self) -> str:
+        return json.dumps(self.settings, sort_keys=True)
+
+    def entry_layout(self) -> dict[str, tuple[tuple[int, ...], np.dtype, object]]:
+        """Dataset (relative to ``/experiments``) -> (per-entry shape, dtype, fill value)."""
+        return _experiment_entry_layout(len(self.directions), len(self.axes), len(self.angles))
+
+    def empty_entry(self) -> dict[str, np.ndarray]:
+        """One entry's results with nothing measured: status NOT_RUN, NaN values, -1 codes."""
+        out = {
+            name: np.full(shape, fill, dtype=dtype)
+            for name, (shape, dtype, fill) in self.entry_layout().items()
+        }
+        out["status"][:] = ExperimentStatus.NOT_RUN
+        return out
+
+    def same_as(self, other: ExperimentLayout | None) -> bool:
+        return (
+            other is not None
+            and self.names == other.names
+            and self.settings_json == other.settings_json
+            and all(
+                a.shape == b.shape and np.array_equal(a, b)
+                for a, b in (
+                    (self.directions, other.directions),
+                    (self.axes, other.axes),
+                    (self.angles, other.angles),
+                )
+            )
+        )
+
+
+def _experiment_entry_layout(d: int, a: int, j: int) -> dict[str, tuple[tuple[int, ...], np.dtype, object]]:
+    f8, i1 = np.dtype(np.float64), np.dtype(np.int8)
+    out: dict[str, tuple[tuple[int, ...], np.dtype, object]] = {
+        "status": ((len(EXPERIMENT_NAMES),), i1, _UNTESTED)
+    }
+    out.update({f"metrics/{m}": ((), f8, np.nan) for m in METRIC_NAMES})
+    out.update({f"features/{m}": ((), f8, np.nan) for m in FEATURE_NAMES})
+    out.update(
+        {
+            "pickup/grasp_force": ((), f8, np.nan),
+            "pickup/slip_force": ((), f8, np.nan),
+            "pickup/slide": ((), f8, np.nan),
+            "pickup/failure": ((), i1, _UNTESTED),
+            "reorientation/held": ((a, j), np.dtype(bool), False),
+            "reorientation/max_von_mises": ((a, j), f8, np.nan),
+            "reorientation/failure": ((a,), i1, _UNTESTED),
+        }
+    )
+    for kind in ("linear", "angular"):
+        out[f"{kind}/threshold"] = ((d,), f8, np.nan)
+        out[f"{kind}/failure"] = ((d,), i1, _UNTESTED)
+        out[f"{kind}/solver_status"] = ((d,), i1, _UNTESTED)
+    return out
+
+
+def _read_experiments(f: h5py.File, path: Path, sizes: dict[str, int]) -> ExperimentLayout | None:
+    """Validate the optional ``/experiments`` group against the shard's (K, G); its layout or None."""
+    if "experiments" not in f:
+        return None
+    grp = f["experiments"]
+    try:
+        layout = ExperimentLayout(
+            names=tuple(json.loads(grp.attrs["names"])),
+            settings=json.loads(grp.attrs["settings"]),
+            directions=grp["directions"][()],
+            axes=grp["axes"][()],
+            angles=grp["angles"][()],
+        )
+    except (KeyError, ValueError, TypeError) as e:
+        raise ShardSchemaError(
+            f"{path}: /experiments has no valid names/settings/directions/axes/angles ({e})"
+        ) from e
+    kg = (sizes["K"], sizes["G"])
+    for name, (shape, dtype, _) in layout.entry_layout().items():
+        if name not in grp:
+            raise ShardSchemaError(f"{path}: dataset /experiments/{name} missing")
+        ds = grp[name]
+        if not isinstance(ds, h5py.Dataset) or ds.dtype != dtype or ds.shape != kg + shape:
+            raise ShardSchemaError(
+                f"{path}: /experiments/{name} has shape {getattr(ds, 'shape', None)} and dtype "
+                f"{getattr(ds, 'dtype', None)}, schema requires {kg + shape} {dtype}"
+            )
+    return layout
+
+
+def _check_experiment_entry(layout: ExperimentLayout, entry: Mapping, where: str) -> dict[str, np.ndarray]:
+    """One entry's experiment results, cast and checked: complete, right shapes, and no metric that its
+    experiment's status does not vouch for (a NaN metric needs a status saying why)."""
+    spec = layout.entry_layout()
+    if not isinstance(entry, Mapping):
+        raise ValueError(f"experiment results of {where} must be a mapping, got {type(entry).__name__}")
+    missing, extra = sorted(set(spec) - set(entry)), sorted(set(entry) - set(spec))
+    if missing or extra:
+        raise ValueError(f"experiment results of {where}: missing {missing}, unknown {extra}")
+    out = {}
+    for name, (shape, dtype, _) in spec.items():
+        arr = np.asarray(entry[name])
+        if arr.shape != shape:
+            raise ValueError(f"experiment results of {where}: {name} has shape {arr.shape}, expected {shape}")
+        out[name] = arr.astype(dtype)
+    status = out["status"]
+    if np.any((status < 0) | (status > max(ExperimentStatus))):
+        raise ValueError(
+            f"experiment results of {where}: status codes {status.tolist()} outside ExperimentStatus"
+        )
+    for i, exp in enumerate(EXPERIMENT_NAMES):
+        if (exp in layout.names) == (status[i] == ExperimentStatus.NOT_RUN):
+            run = "is run" if exp in layout.names else "is not run"
+            raise ValueError(
+                f"experiment results of {where}: {exp} {run} in this shard but its status is "
+                f"{ExperimentStatus(int(status[i])).name}"
+            )
+    for m in METRIC_NAMES:
+        code = ExperimentStatus(int(status[EXPERIMENT_NAMES.index(METRIC_EXPERIMENT[m])]))
+        v = float(out[f"metrics/{m}"])
+        if m == "pickup_success":
+            ok = {ExperimentStatus.OK: v == 1.0, ExperimentStatus.LOST: v == 0.0}.get(code, np.isnan(v))
+        elif code == ExperimentStatus.OK:
+            ok = np.isfinite(v)
+        else:
+            ok = np.isnan(v)
+        if not ok:
+            raise ValueError(
+                f"experiment results of {where}: metric {m} = {v} does not match the status {code.name} of "
+                f"{METRIC_EXPERIMENT[m]}"
+            )
+    return out
 
 
 # ---------------------------------------------------------------------------------------------- layout
@@ -296,7 +549,15 @@ class GraspShard:
             self.force = f["ramp/force"][()]
             self.finger_travel = f["ramp/finger_travel"][()]
             self.status = f["ramp/status"][()]
+            self.experiment_layout = _read_experiments(f, self.path, self.sizes)
+            self._experiments = {}
+            if self.experiment_layout is not None:
+                # small (K, G, ...) arrays: loaded with the static data
+                self._experiments = {
+                    name: f[f"experiments/{name}"][()] for name in self.experiment_layout.entry_layout()
+                }
         self._check_static()
+        self._check_experiments()
         self._file: h5py.File | None = None
         self._pid: int | None = None
 
@@ -328,6 +589,116 @@ class GraspShard:
             if not np.all(np.isfinite(arr[solved])):
                 k, g = np.argwhere(solved & ~np.all(np.isfinite(arr.reshape(*arr.shape[:2], -1)), axis=-1))[0]
                 raise ShardSchemaError(f"{p}: /{name}[k={k}, g={g}] contains NaN or inf although status == 0")
+
+    def _check_experiments(self) -> None:
+        if self.experiment_layout is None:
+            return
+        status = self._experiments["status"]
+        if np.any((status < 0) | (status > max(ExperimentStatus))):
+            k, g = np.argwhere(np.any((status < 0) | (status > max(ExperimentStatus)), axis=-1))[0]
+            raise ShardSchemaError(
+                f"{self.path}: /experiments/status[k={k}, g={g}] = {status[k, g].tolist()} is not an "
+                "ExperimentStatus (entry never written?)"
+            )
+        for m in METRIC_NAMES:
+            i = EXPERIMENT_NAMES.index(METRIC_EXPERIMENT[m])
+            v = self._experiments[f"metrics/{m}"]
+            measured = status[..., i] == ExperimentStatus.OK
+            if m == "pickup_success":
+                measured |= status[..., i] == ExperimentStatus.LOST
+            if np.any(~np.isnan(v[~measured])):
+                raise ShardSchemaError(
+                    f"{self.path}: /experiments/metrics/{m} has values where {METRIC_EXPERIMENT[m]} measured "
+                    "nothing (status not OK)"
+                )
+
+    # -------------------------------------------------------------- experiments
+    @property
+    def has_experiments(self) -> bool:
+        """Whether the shard holds DefGraspSim experiment results (the optional ``/experiments`` group)."""
+        return self.experiment_layout is not None
+
+    @property
+    def experiment_names(self) -> tuple[str, ...]:
+        """The experiments run for every entry (empty for a shard of squeeze ramps only)."""
+        return () if self.experiment_layout is None else self.experiment_layout.names
+
+    def _entry(self, k: int, g: int) -> tuple[int, int]:
+        K, G = self.sizes["K"], self.sizes["G"]
+        if not (-K <= k < K and -G <= g < G):
+            raise IndexError(f"{self.path.name}: entry (k={k}, g={g}) outside (K, G) = ({K}, {G})")
+        return k, g
+
+    def experiment_status(self, k: int, g: int) -> dict[str, ExperimentStatus]:
+        """``{experiment: ExperimentStatus}`` of entry ``(k, g)`` for the 4 :data:`EXPERIMENT_NAMES`
+        (all NOT_RUN in a shard without experiments)."""
+        k, g = self._entry(k, g)
+        if self.experiment_layout is None:
+            return {name: ExperimentStatus.NOT_RUN for name in EXPERIMENT_NAMES}
+        codes = self._experiments["status"][k, g]
+        return {name: ExperimentStatus(int(c)) for name, c in zip(EXPERIMENT_NAMES, codes)}
+
+    def metrics(self, k: int, g: int) -> dict[str, float]:
+        """The 7 performance metrics (thesis §6.5) of grasp ``g`` with modulus ``k``: ``{name: value}`` with
+        the names of :data:`METRIC_NAMES` (units in the name; ``pickup_success`` is 1.0 or 0.0). A metric
+        its experiment did not measure is NaN; :meth:`experiment_status` says why (a shard without
+        experiments gives all NaN)."""
+        k, g = self._entry(k, g)
+        if self.experiment_layout is None:
+            return {m: float("nan") for m in METRIC_NAMES}
+        return {m: float(self._experiments[f"metrics/{m}"][k, g]) for m in METRIC_NAMES}
+
+    def features(self, k: int, g: int) -> dict[str, float]:
+        """The 7 grasp features (thesis Table 6.2) of entry ``(k, g)``, measured at the pickup grasp force
+        F_p: ``{name: value}`` with the names of :data:`FEATURE_NAMES` (NaN where the grasp did not form or
+        the shard has no experiments)."""
+        k, g = self._entry(k, g)
+        if self.experiment_layout is None:
+            return {m: float("nan") for m in FEATURE_NAMES}
+        return {m: float(self._experiments[f"features/{m}"][k, g]) for m in FEATURE_NAMES}
+
+    def experiment(self, k: int, g: int, name: str) -> dict:
+        """The per-direction results of experiment ``name`` of entry ``(k, g)``, with its ``status``:
+
+        - ``pickup``: ``grasp_force`` F_p [N], ``slip_force`` F_slip [N], ``slide`` [m], ``failure``
+          (GraspFailure code);
+        - ``reorientation``: ``axes`` (A, 3), ``angles`` (J,), ``held`` (A, J) bool, ``max_von_mises``
+          (A, J) [Pa], ``failure`` (A,) GraspFailure codes;
+        - ``linear`` / ``angular``: ``directions`` (D, 3) (gripper frame), ``threshold`` (D,) [m/s^2 |
+          rad/s^2], ``failure`` (D,) GraspFailure codes, ``solver_status`` (D,) fem.SolveStatus codes.
+
+        Codes -1 and NaN mark what was not tested.
+
+        Raises:
+            KeyError: unknown experiment name, or the shard has no experiments.
+        """
+        if name not in EXPERIMENT_NAMES:
+            raise KeyError(f"unknown experiment {name!r}; choose from {list(EXPERIMENT_NAMES)}")
+        k, g = self._entry(k, g)
+        layout = self.experiment_layout
+        if layout is None:
+            raise KeyError(f"{self.path.name} holds no experiment results (generated with experiments=[])")
+        out: dict = {
+            "status": ExperimentStatus(int(self._experiments["status"][k, g, EXPERIMENT_NAMES.index(name)]))
+        }
+        for key, arr in self._experiments.items():
+            if key.startswith(name + "/"):
+                v = arr[k, g]
+                out[key[len(name) + 1 :]] = v.copy() if v.ndim else v.item()
+        if name == "reorientation":
+            out.update(axes=layout.axes.copy(), angles=layout.angles.copy())
+        elif name in ("linear", "angular"):
+            out["directions"] = layout.directions.copy()
+        return out
+
+    def metric_values(self, name: str) -> np.ndarray:
+        """(K, G) float64 values of the metric ``name`` (:data:`METRIC_NAMES`) for every entry (NaN where
+        not measured)."""
+        if name not in METRIC_NAMES:
+            raise KeyError(f"unknown metric {name!r}; choose from {list(METRIC_NAMES)}")
+        if self.experiment_layout is None:
+            return np.full((self.sizes["K"], self.sizes["G"]), np.nan)
+        return self._experiments[f"metrics/{name}"].copy()
 
     # -------------------------------------------------------------- sizes
     @property
@@ -408,6 +779,7 @@ class GraspShardWriter:
         self.path = final_path
         self._f = f
         self.sizes = _check_layout(f, partial_path, require_progress=True)
+        self.experiment_layout = _read_experiments(f, partial_path, self.sizes)
 
     # -------------------------------------------------------------- construction
     @staticmethod
@@ -430,6 +802,7 @@ class GraspShardWriter:
         generator_version: str,
         config: str = "",
         overwrite: bool = False,
+        experiments: ExperimentLayout | None = None,
     ) -> GraspShardWriter:
         """Start (or resume) the shard ``path`` (a ``.h5`` name; data go to ``<name>.partial.h5`` first).
 
@@ -441,6 +814,8 @@ class GraspShardWriter:
             num_steps: S, ramp steps stored per grasp.
             generator_version, config: provenance, stored as root attributes.
             overwrite: discard an existing final or partial file with different content.
+            experiments: the experiments every entry will hold (creates ``/experiments``); None: squeeze
+                ramps only. A partial file made with other experiments or settings is not resumed.
 
         Raises:
             FileExistsError: the final shard already exists (and not ``overwrite``).
@@ -465,6 +840,10 @@ class GraspShardWriter:
             )
         if num_steps < 1:
             raise ValueError(f"num_steps must be >= 1, got {num_steps}")
+        if experiments is not None and not isinstance(experiments, ExperimentLayout):
+            raise TypeError(
+                f"experiments must be an ExperimentLayout or None, got {type(experiments).__name__}"
+            )
         static = {
             "object/points": obj.points,
             "object/tets": obj.tets,
@@ -485,12 +864,12 @@ class GraspShardWriter:
                 )
             path.unlink()
         if partial.exists():
-            if cls._same_static(partial, static, obj, num_steps):
+            if cls._same_static(partial, static, obj, num_steps, experiments):
                 return cls(partial, path, h5py.File(partial, "a"))
             if not overwrite:
                 raise ValueError(
-                    f"{partial}: an unfinished shard with different object/material/grasp data exists; "
-                    "delete it or pass overwrite=True"
+                    f"{partial}: an unfinished shard with different object/material/grasp/experiment data "
+                    "exists; delete it or pass overwrite=True"
                 )
             partial.unlink()
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -530,16 +909,32 @@ class GraspShardWriter:
             shuffle=True,
         )
         f.create_dataset("ramp/status", shape=(k, g), dtype=np.int8, fillvalue=-1)
+        if experiments is not None:
+            grp = f.create_group("experiments")
+            grp.attrs["names"] = json.dumps(list(experiments.names))
+            grp.attrs["settings"] = experiments.settings_json
+            grp.create_dataset("directions", data=experiments.directions)
+            grp.create_dataset("axes", data=experiments.axes)
+            grp.create_dataset("angles", data=experiments.angles)
+            for name, (shape, dtype, fill) in experiments.entry_layout().items():
+                grp.create_dataset(name, shape=(k, g, *shape), dtype=dtype, fillvalue=fill)
         f.create_dataset("progress/done", shape=(k, g), dtype=bool, fillvalue=False)
         f.flush()
         return cls(partial, path, f)
 
     @staticmethod
-    def _same_static(partial: Path, static: dict, obj: ObjectRecord, num_steps: int) -> bool:
+    def _same_static(
+        partial: Path, static: dict, obj: ObjectRecord, num_steps: int, experiments: ExperimentLayout | None
+    ) -> bool:
         try:
             with h5py.File(partial, "r") as f:
-                _check_layout(f, partial, require_progress=True)
+                sizes = _check_layout(f, partial, require_progress=True)
                 if f["ramp/force"].shape[2] != num_steps:
+                    return False
+                found = _read_experiments(f, partial, sizes)
+                if (found is None) != (experiments is None) or (
+                    experiments is not None and not experiments.same_as(found)
+                ):
                     return False
                 if (f.attrs["object_name"], f.attrs["object_category"], f.attrs["object_source"]) != (
                     obj.name,
@@ -576,16 +971,21 @@ class GraspShardWriter:
         displacement: np.ndarray,
         finger_travel: np.ndarray,
         status: int = STATUS_SOLVED,
+        experiments: Mapping | None = None,
     ) -> None:
-        """Store the squeeze ramp of grasp ``g`` with modulus ``k`` and mark it done.
+        """Store the squeeze ramp of grasp ``g`` with modulus ``k`` (and its experiment results) and mark it
+        done: everything of the entry is flushed before it is marked, so a kill never leaves half an entry.
 
         Args:
             force: (S,) total normal grasp force [N]. von_mises: (S, N) [Pa]. displacement: (S, N, 3) [m].
             finger_travel: (S, 2) [m]. status: 0 if every step solved, else a positive failure code
                 (then fields may be NaN; they are never used for training).
+            experiments: required iff the shard has ``/experiments``: ``{dataset: value}`` for every dataset
+                of :meth:`ExperimentLayout.entry_layout` (start from :meth:`ExperimentLayout.empty_entry`).
 
         Raises:
-            ValueError: wrong shapes, a negative status, or non-finite values with ``status == 0``.
+            ValueError: wrong shapes, a negative status, non-finite values with ``status == 0``, missing or
+                unexpected experiment results, or a metric its experiment's status does not vouch for.
         """
         sz = self.sizes
         if not (0 <= k < sz["K"] and 0 <= g < sz["G"]):
@@ -603,12 +1003,25 @@ class GraspShardWriter:
                 raise ValueError(f"{name} of (k={k}, g={g}) has shape {arr.shape}, expected {shape}")
             if status == STATUS_SOLVED and not np.all(np.isfinite(arr)):
                 raise ValueError(f"{name} of (k={k}, g={g}) has NaN/inf values but status is 0 (solved)")
+        results = None
+        if self.experiment_layout is not None:
+            if experiments is None:
+                raise ValueError(
+                    f"{self.partial_path.name}: the shard holds experiments; pass those of (k={k}, g={g})"
+                )
+            results = _check_experiment_entry(self.experiment_layout, experiments, f"(k={k}, g={g})")
+        elif experiments is not None:
+            raise ValueError(
+                f"{self.partial_path.name}: the shard was created without experiments; cannot store them"
+            )
         f = self._f
         f["progress/done"][k, g] = False
         f.flush()
         for name, (arr, _) in arrays.items():
             f[f"ramp/{name}"][k, g] = arr
         f["ramp/status"][k, g] = status
+        for name, arr in (results or {}).items():
+            f[f"experiments/{name}"][k, g] = arr
         f.flush()
         f["progress/done"][k, g] = True
         f.flush()

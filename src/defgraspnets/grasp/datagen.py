@@ -1,5 +1,6 @@
-"""The grasp dataset generator (thesis §7.4, DefGraspSim ch. 6): squeeze ramps on the FEM engine written
-as HDF5 grasp shards (schema ``defgraspnets.grasps/1``, :mod:`defgraspnets.data.grasp_schema`).
+"""The grasp dataset generator (thesis §7.4, DefGraspSim ch. 6): squeeze ramps on the FEM engine, and
+optionally the DefGraspSim experiments, written as HDF5 grasp shards (schema ``defgraspnets.grasps/1``,
+:mod:`defgraspnets.data.grasp_schema`).
 
 For one object and K Young's moduli ``E_k``::
 
@@ -9,6 +10,12 @@ For one object and K Young's moduli ``E_k``::
         one batched quasi-static problem per grasp of the shard: pads at first contact, total normal
         grasp force F_g ramped 0 -> F_max in S equal steps, zero gravity
         per step s: von Mises stress sigma (N,), displacement d = x - X (N, 3), F_g, finger travel
+        optionally (``experiments``, thesis §6.4-6.5): the selected experiments of the same grasps with
+        :class:`~defgraspnets.grasp.experiments.GraspExperiments` (pickup always, then reorientation,
+        linear and angular acceleration), batched over the grasps: the 7 performance metrics, the 7 grasp
+        features, per-direction thresholds and failure codes, and a status per experiment
+        (:class:`~defgraspnets.data.grasp_schema.ExperimentStatus`; a metric is NaN where its experiment
+        measured nothing, never a made-up number)
 
 Every ``(k, g)`` entry is written with status 0 only if its problem converged at *every* step (and, by
 default, has no inverted tet); otherwise its fields are NaN and its status is the first failure code
@@ -17,16 +24,20 @@ training data (thesis: unstable grasps are excluded from D).
 
 A shard is written through :class:`~defgraspnets.data.grasp_schema.GraspShardWriter`: a killed run leaves
 ``<name>.partial.h5``; running the generator again with the same settings resumes it and simulates only
-the grasps not written yet. Finished shards (``<name>.h5``) are skipped unless ``overwrite``. Independent
-shards (``shard_index`` = i of ``shard_count``) and objects are the unit of scale-out (Hydra multirun).
+the grasps not written yet. An entry's ramp and experiment results are written together and marked done
+only then, so a resumed shard holds every entry once. Finished shards (``<name>.h5``) are skipped unless
+``overwrite``. Independent shards (``shard_index`` = i of ``shard_count``) and objects are the unit of
+scale-out (Hydra multirun).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import logging
 import time
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import h5py
@@ -34,13 +45,24 @@ import numpy as np
 
 from defgraspnets import __version__, fem
 from defgraspnets.data.grasp_schema import (
+    EXPERIMENT_NAMES,
     STATUS_SOLVED,
+    ExperimentLayout,
+    ExperimentStatus,
     GraspShardWriter,
     GripperFingers,
     ObjectRecord,
     shard_file_name,
 )
 
+from . import features as _features
+from .experiments import (
+    ExperimentSettings,
+    GraspExperiments,
+    GraspFailure,
+    experiment_solver_options,
+    sphere_directions,
+)
 from .gripper import FRANKA_HAND, ParallelJawGripper
 from .sampler import GraspSet, sample_antipodal_grasps
 from .squeeze import GRIP_DOF, finger_contact_poses, make_squeeze_solver, squeeze_ramp
@@ -48,12 +70,17 @@ from .squeeze import GRIP_DOF, finger_contact_poses, make_squeeze_solver, squeez
 __all__ = [
     "STATUS_INVERTED",
     "ShardResult",
+    "experiment_layout",
     "generate_object_shards",
     "gripper_fingers",
     "load_object_mesh",
+    "resolve_experiment_settings",
+    "resolve_experiments",
     "resolve_object_mesh",
+    "run_experiments",
     "shard_grasp_indices",
     "structured_box",
+    "time_grasp_experiments",
 ]
 
 STATUS_INVERTED = 4  # converged, but with inverted tets (det F <= 0): not a physical answer
@@ -62,13 +89,26 @@ _log = logging.getLogger(__name__)
 
 @dataclass
 class ShardResult:
-    """Outcome of one shard: its final path, solved / total ``(k, g)`` entries, wall time [s]."""
+    """Outcome of one shard: its final path, solved / total ``(k, g)`` entries, wall time [s], and per
+    experiment run the count of entries per :class:`ExperimentStatus` name (``{"pickup": {"OK": 5, "LOST": 1,
+    ...}}``; empty without experiments)."""
 
     path: Path
     solved: int
     total: int
     seconds: float
     skipped: bool = False  # the shard was already finished
+    experiments: dict[str, dict[str, int]] = field(default_factory=dict)
+
+    def experiment_summary(self) -> str:
+        """``pickup 5 ok / 1 failed (LOST 1), linear 6 ok / 0 failed`` (empty without experiments)."""
+        parts = []
+        for name, counts in self.experiments.items():
+            ok = counts.get("OK", 0)
+            bad = {k: v for k, v in counts.items() if k != "OK" and v}
+            why = f" ({', '.join(f'{k} {v}' for k, v in bad.items())})" if bad else ""
+            parts.append(f"{name} {ok} ok / {sum(bad.values())} failed{why}")
+        return ", ".join(parts)
 
 
 # ---------------------------------------------------------------------------------------------- inputs
@@ -228,6 +268,256 @@ def _squeeze_modulus(
     return out
 
 
+# ---------------------------------------------------------------------------------------------- experiments
+# what a failing experiment raises (the FEM engine, the metrics on degenerate states): recorded as ERROR for
+# the grasps of that batch instead of losing the shard; programming errors (TypeError, ...) still propagate
+_EXPERIMENT_ERRORS = (ValueError, RuntimeError, ArithmeticError, np.linalg.LinAlgError)
+_PICKUP_METRICS = {
+    "max_von_mises_stress_pa": "max_von_mises",
+    "max_deformation_m": "max_deformation",
+    "strain_energy_j": "strain_energy",
+}
+_INSTABILITY = {"linear": "linear_instability_m_s2", "angular": "angular_instability_rad_s2"}
+
+
+def resolve_experiments(names) -> tuple[str, ...]:
+    """The experiments to run, in the order of :data:`~defgraspnets.data.grasp_schema.EXPERIMENT_NAMES`:
+    ``()`` for none (squeeze ramps only); ``pickup`` is added to any selection (it forms the grasp and gives
+    the features and F_slip, as in :meth:`GraspExperiments.run`).
+
+    Raises:
+        ValueError: an unknown name, or not a list of names.
+    """
+    if names is None:
+        return ()
+    if isinstance(names, str):
+        names = [names]
+    try:
+        names = list(names)
+    except TypeError as e:
+        raise ValueError(f"experiments must be a list of names, got {names!r}") from e
+    unknown = [n for n in names if n not in EXPERIMENT_NAMES]
+    if unknown:
+        raise ValueError(
+            f"unknown experiment(s) {unknown}; choose from {list(EXPERIMENT_NAMES)} "
+            "(or [] for squeeze ramps only)"
+        )
+    if not names:
+        return ()
+    chosen = set(names) | {"pickup"}
+    return tuple(n for n in EXPERIMENT_NAMES if n in chosen)
+
+
+def resolve_experiment_settings(settings, friction: float) -> ExperimentSettings:
+    """:class:`ExperimentSettings` with the generator's pad ``friction``, from None (the defaults), a
+    mapping of its fields other than ``friction`` (a Hydra config group), or ``ExperimentSettings`` whose
+    friction is ``friction``.
+
+    Raises:
+        ValueError: unknown fields, a mapping that sets ``friction``, a different friction, bad values.
+        TypeError: anything else.
+    """
+    if settings is None:
+        return ExperimentSettings(friction=float(friction))
+    if isinstance(settings, ExperimentSettings):
+        if settings.friction != friction:
+            raise ValueError(
+                f"experiment settings have friction {settings.friction}, the generator {friction}: the "
+                "experiments use the generator's friction (the pads are the same)"
+            )
+        return settings
+    if isinstance(settings, Mapping):
+        known = {f.name for f in dataclasses.fields(ExperimentSettings)}
+        if "friction" in settings:
+            raise ValueError(
+                "experiment settings must not set friction: the experiments use the generator's `friction`"
+            )
+        unknown = sorted(set(settings) - known)
+        if unknown:
+            raise ValueError(
+                f"unknown experiment settings {unknown}; ExperimentSettings has "
+                f"{sorted(known - {'friction'})}"
+            )
+        return ExperimentSettings(**dict(settings), friction=float(friction))
+    raise TypeError(
+        f"experiment settings must be ExperimentSettings, a mapping or None, got {type(settings)}"
+    )
+
+
+def experiment_layout(names, settings: ExperimentSettings) -> ExperimentLayout:
+    """The shard's ``/experiments`` layout for the experiments ``names`` run with ``settings``: the test
+    directions and reorientation axes of :class:`GraspExperiments` (:func:`sphere_directions`)."""
+    j = settings.reorientation_angles
+    return ExperimentLayout(
+        names=resolve_experiments(names),
+        settings=dataclasses.asdict(settings),
+        directions=sphere_directions(settings.num_directions),
+        axes=sphere_directions(settings.num_directions),
+        angles=np.pi * np.arange(1, j + 1) / j,
+    )
+
+
+def run_experiments(
+    mesh: fem.TetMesh,
+    grasps: GraspSet,
+    material: fem.Material,
+    settings: ExperimentSettings,
+    names=EXPERIMENT_NAMES,
+    device=None,
+    options: fem.SolverOptions | None = None,
+    gripper: ParallelJawGripper = FRANKA_HAND,
+    directions_per_solver: int = 1,
+    progress: bool = False,
+) -> tuple[list[dict[str, np.ndarray]], dict[str, float]]:
+    """Run the experiments ``names`` on the B ``grasps`` with :class:`GraspExperiments` (each experiment
+    batched over the grasps) and return one shard entry per grasp (:meth:`ExperimentLayout.empty_entry`
+    filled in, see :mod:`defgraspnets.data.grasp_schema`) and the wall time of each experiment [s].
+
+    The metrics and features are those of :meth:`GraspExperimentResults.per_grasp`, except that nothing
+    unmeasured is reported: a grasp whose squeeze to F_p found no equilibrium gets NaN features and
+    metrics and status NOT_GRASPED, and is left out of the later experiments; an experiment that raises
+    marks its grasps ERROR (logged) and the others still run.
+    """
+    names = resolve_experiments(names)
+    if not names:
+        raise ValueError("run_experiments: no experiment selected")
+    layout = experiment_layout(names, settings)
+    b = len(grasps)
+    entries = [layout.empty_entry() for _ in range(b)]
+    seconds: dict[str, float] = {}
+    col = {n: i for i, n in enumerate(EXPERIMENT_NAMES)}
+    options = options or experiment_solver_options()
+
+    def make(rows=None) -> GraspExperiments:
+        return GraspExperiments(
+            mesh, grasps if rows is None else grasps[rows], material, settings, gripper=gripper,
+            device=device, options=options, progress=progress, directions_per_solver=directions_per_solver,
+        )  # fmt: skip
+
+    def attempt(name: str, rows, fn):
+        start = time.perf_counter()
+        try:
+            return fn()
+        except _EXPERIMENT_ERRORS:
+            _log.exception(
+                "%s E=%.3g Pa: the %s experiment of %d grasps raised; recorded as ERROR",
+                mesh.name, material.youngs_modulus, name, len(rows),
+            )  # fmt: skip
+            for j in rows:
+                entries[j]["status"][col[name]] = ExperimentStatus.ERROR
+            return None
+        finally:
+            seconds[name] = time.perf_counter() - start
+
+    ex = make()
+    pickup = attempt("pickup", range(b), ex.pickup)
+    if pickup is None:
+        for name in names:
+            for e in entries:
+                e["status"][col[name]] = ExperimentStatus.ERROR
+        return entries, seconds
+    grasped = pickup.failure != GraspFailure.NOT_GRASPED
+    for j, e in enumerate(entries):
+        e["pickup/grasp_force"][...] = pickup.grasp_force
+        e["pickup/failure"][...] = pickup.failure[j]
+        if not grasped[j]:
+            e["status"][col["pickup"]] = ExperimentStatus.NOT_GRASPED
+            continue
+        e["pickup/slip_force"][...] = pickup.slip_force[j]
+        e["pickup/slide"][...] = pickup.slide[j]
+        for f in _features.FEATURE_NAMES:
+            e[f"features/{f}"][...] = pickup.features[f][j]
+        values = {m: float(getattr(pickup, attr)[j]) for m, attr in _PICKUP_METRICS.items()}
+        if not pickup.success[j]:
+            e["metrics/pickup_success"][...] = 0.0
+            e["status"][col["pickup"]] = ExperimentStatus.LOST
+        elif all(np.isfinite(v) for v in values.values()):
+            e["metrics/pickup_success"][...] = 1.0
+            for m, v in values.items():
+                e[f"metrics/{m}"][...] = v
+            e["status"][col["pickup"]] = ExperimentStatus.OK
+        else:  # held, but a metric is not a number: nothing trustworthy was measured
+            _log.warning("%s grasp %d: pickup held but metrics %s; recorded as ERROR", mesh.name, j, values)
+            e["status"][col["pickup"]] = ExperimentStatus.ERROR
+
+    # the later experiments run on the grasps that formed (a failed squeeze fails again: same problem)
+    rows = np.flatnonzero(grasped & np.isfinite(pickup.slip_force) & (pickup.slip_force > 0))
+    later = [n for n in names if n != "pickup"]
+    for j in np.setdiff1d(np.arange(b), rows):
+        for name in later:
+            entries[j]["status"][col[name]] = ExperimentStatus.NOT_GRASPED
+    if not later:
+        return entries, seconds
+    if rows.size == 0:
+        seconds.update({name: 0.0 for name in later})
+        return entries, seconds
+    sub = ex if rows.size == b else make(rows)
+
+    if "reorientation" in names:
+        r = attempt("reorientation", rows, lambda: sub.reorientation(pickup.slip_force[rows]))
+        for i, j in enumerate(rows if r is not None else []):
+            e = entries[j]
+            e["reorientation/held"][...] = r.held[i]
+            e["reorientation/max_von_mises"][...] = r.max_von_mises[i]
+            e["reorientation/failure"][...] = r.failure[i]
+            c = float(r.controllability[i])
+            if np.all(r.failure[i] == GraspFailure.NOT_GRASPED):
+                code = ExperimentStatus.NOT_GRASPED
+            elif np.isfinite(c):
+                code = ExperimentStatus.OK
+                e["metrics/deformation_controllability_m"][...] = c
+            else:
+                code = ExperimentStatus.LOST
+            e["status"][col["reorientation"]] = code
+    for kind in ("linear", "angular"):
+        if kind not in names:
+            continue
+        a = attempt(kind, rows, lambda kind=kind: sub.acceleration(kind))
+        for i, j in enumerate(rows if a is not None else []):
+            e = entries[j]
+            e[f"{kind}/threshold"][...] = a.threshold[i]
+            e[f"{kind}/failure"][...] = a.failure[i]
+            e[f"{kind}/solver_status"][...] = a.solver_status[i]
+            v = float(a.instability[i])
+            if np.isfinite(v):
+                e["status"][col[kind]] = ExperimentStatus.OK
+                e[f"metrics/{_INSTABILITY[kind]}"][...] = v
+            else:  # no direction tested: the grasp did not form
+                e["status"][col[kind]] = ExperimentStatus.NOT_GRASPED
+    return entries, seconds
+
+
+def _experiment_counts(path: Path) -> dict[str, dict[str, int]]:
+    """Entries per ExperimentStatus name of each experiment run in the shard ``path``."""
+    with h5py.File(path, "r") as f:
+        if "experiments" not in f:
+            return {}
+        names = json.loads(f["experiments"].attrs["names"])
+        status = f["experiments/status"][()]
+    out = {}
+    for name in names:
+        codes = status[..., EXPERIMENT_NAMES.index(name)].ravel()
+        out[name] = {s.name: int(np.count_nonzero(codes == s)) for s in ExperimentStatus if s != s.NOT_RUN}
+    return out
+
+
+def _warn_if_other_experiments(path: Path, layout: ExperimentLayout | None) -> None:
+    """A finished shard is skipped: say so if it was made with other experiments than asked for now."""
+    try:
+        with h5py.File(path, "r") as f:
+            found = tuple(json.loads(f["experiments"].attrs["names"])) if "experiments" in f else ()
+            settings = f["experiments"].attrs["settings"] if "experiments" in f else None
+    except (OSError, KeyError, ValueError):
+        return
+    wanted = () if layout is None else layout.names
+    if found != wanted or (layout is not None and settings != layout.settings_json):
+        _log.warning(
+            "%s is finished with experiments %s (asked for %s, or other settings); it is kept as it is: "
+            "overwrite=true regenerates it",
+            path, list(found), list(wanted),
+        )  # fmt: skip
+
+
 def generate_object_shards(
     obj: str | fem.TetMesh,
     out_dir: str | Path,
@@ -252,8 +542,13 @@ def generate_object_shards(
     config_text: str = "",
     progress: bool = False,
     gripper: ParallelJawGripper = FRANKA_HAND,
+    experiments: Sequence[str] = (),
+    experiment_settings: ExperimentSettings | Mapping | None = None,
+    experiment_options: fem.SolverOptions | None = None,
+    directions_per_solver: int = 1,
 ) -> list[ShardResult]:
-    """Simulate the squeeze ramps of one object and write its grasp shard(s).
+    """Simulate the squeeze ramps (and optionally the DefGraspSim experiments) of one object and write its
+    grasp shard(s).
 
     Args:
         obj: registry object name (meshed with ``mesher`` to about ``target_nodes`` vertices, cached),
@@ -271,12 +566,20 @@ def generate_object_shards(
         overwrite: regenerate finished shards and discard unfinished ones made with other settings.
         config_text: provenance (YAML) stored in the shard's ``config`` attribute.
         progress: tqdm progress bars (moduli and ramp steps).
+        experiments: DefGraspSim experiments to run per ``(k, g)`` as well, any of ``("pickup",
+            "reorientation", "linear", "angular")`` (pickup always runs with any; :func:`run_experiments`);
+            written to the shard's ``/experiments`` group. ``()``: squeeze ramps only.
+        experiment_settings: :class:`ExperimentSettings` (or a mapping of its fields but ``friction``); their
+            friction is ``friction``. None: the defaults (thesis values).
+        experiment_options: FEM settings of the experiments (default :func:`experiment_solver_options`).
+        directions_per_solver: acceleration directions batched in one solver (:class:`GraspExperiments`).
 
     Returns:
         One :class:`ShardResult` per shard handled.
 
     Raises:
-        ValueError: unknown object, non-positive moduli / force / density / friction, steps < 1, ...
+        ValueError: unknown object or experiment, non-positive moduli / force / density / friction,
+            steps < 1, bad experiment settings, ...
     """
     moduli = _check_inputs(
         youngs_modulus, num_grasps, steps, max_force, friction, poisson_ratio, density, shard_count
@@ -284,6 +587,11 @@ def generate_object_shards(
     steps, num_grasps, shard_count = int(steps), int(num_grasps), int(shard_count)
     if shard_index is not None and not 0 <= shard_index < shard_count:
         raise ValueError(f"shard_index {shard_index} outside [0, {shard_count})")
+    names = resolve_experiments(experiments)
+    settings = resolve_experiment_settings(experiment_settings, friction)
+    if not (isinstance(directions_per_solver, (int, np.integer)) and directions_per_solver >= 1):
+        raise ValueError(f"directions_per_solver must be an integer >= 1, got {directions_per_solver!r}")
+    layout = experiment_layout(names, settings) if names else None
     out_dir = Path(out_dir)
     if isinstance(obj, fem.TetMesh):
         mesh = obj
@@ -296,6 +604,8 @@ def generate_object_shards(
     paths = {i: out_dir / shard_file_name(name, i, shard_count) for i in indices}
     if not overwrite and all(p.exists() for p in paths.values()):
         _log.info("%s: all %d shard(s) already finished, nothing to do", name, len(paths))
+        for p in paths.values():
+            _warn_if_other_experiments(p, layout)
         return [ShardResult(p, -1, -1, 0.0, skipped=True) for p in paths.values()]
 
     k = len(moduli)
@@ -315,6 +625,7 @@ def generate_object_shards(
     for i, path in paths.items():
         if path.exists() and not overwrite:
             _log.info("%s exists, skipping", path)
+            _warn_if_other_experiments(path, layout)
             results.append(ShardResult(path, -1, -1, 0.0, skipped=True))
             continue
         start = time.perf_counter()
@@ -324,6 +635,7 @@ def generate_object_shards(
         writer = GraspShardWriter.create(
             path, record, fingers, grasps.poses, fpose, closing, steps,
             generator_version=f"defgraspnets {__version__}", config=config_text, overwrite=overwrite,
+            experiments=layout,
         )  # fmt: skip
         try:
             pending = writer.pending()
@@ -344,10 +656,18 @@ def generate_object_shards(
                     mesh, grasps[np.array(gs)], material, friction, max_force, steps, device,
                     solver_options, reject_inverted, progress,
                 )  # fmt: skip
+                entries = None
+                if layout is not None:
+                    entries, _ = run_experiments(
+                        mesh, grasps[np.array(gs)], material, settings, names, device, experiment_options,
+                        gripper, directions_per_solver, progress,
+                    )  # fmt: skip
+                # ramp and experiment results of an entry are written together, then marked done
                 for j, g in enumerate(gs):
                     writer.write(
                         kk, g, res["force"][j], res["von_mises"][j], res["displacement"][j],
                         res["finger_travel"][j], status=int(res["status"][j]),
+                        experiments=None if entries is None else entries[j],
                     )  # fmt: skip
                 codes = res["status"][res["status"] != STATUS_SOLVED]
                 if codes.size:
@@ -366,6 +686,98 @@ def generate_object_shards(
         with h5py.File(final, "r") as f:
             solved = int(np.count_nonzero(f["ramp/status"][()] == STATUS_SOLVED))
         seconds = time.perf_counter() - start
-        _log.info("wrote %s: %d/%d solved in %.1f s", final, solved, k * len(grasps), seconds)
-        results.append(ShardResult(final, solved, k * len(grasps), seconds))
+        result = ShardResult(final, solved, k * len(grasps), seconds, experiments=_experiment_counts(final))
+        summary = f"; experiments: {result.experiment_summary()}" if result.experiments else ""
+        _log.info("wrote %s: %d/%d solved in %.1f s%s", final, solved, k * len(grasps), seconds, summary)
+        results.append(result)
     return results
+
+
+# ---------------------------------------------------------------------------------------------- timing
+def _number(v):
+    v = float(v)
+    return v if np.isfinite(v) else None
+
+
+def time_grasp_experiments(
+    mesh: fem.TetMesh,
+    grasps: GraspSet,
+    material: fem.Material,
+    settings: ExperimentSettings,
+    names=EXPERIMENT_NAMES,
+    steps: int = 50,
+    max_force: float = 15.0,
+    device=None,
+    squeeze_options: fem.SolverOptions | None = None,
+    experiment_options: fem.SolverOptions | None = None,
+    directions_per_solver: int = 1,
+    gripper: ParallelJawGripper = FRANKA_HAND,
+    warmup: bool = True,
+) -> dict:
+    """Wall times of what the generator computes for one object and one modulus: the squeeze ramp
+    (``steps`` steps to ``max_force``, :func:`generate_object_shards`) and each experiment of
+    :func:`run_experiments`, all batched over the B ``grasps`` as the generator batches them.
+
+    ``warmup`` first runs a one-step squeeze and a one-step pickup and angular test of one grasp (loads the
+    Warp kernels; its time is reported apart). Returns a JSON-ready dict: per stage ``seconds``,
+    ``grasps_per_s`` and the per-grasp status (ramp: failure code, 0 solved; experiments:
+    :class:`ExperimentStatus` names) and metrics.
+    """
+    from defgraspnets.data.grasp_schema import METRIC_EXPERIMENT
+
+    names = resolve_experiments(names)
+    b = len(grasps)
+    out: dict = {"grasps": b}
+    if warmup:
+        start = time.perf_counter()
+        one = grasps[np.array([0])]
+        _squeeze_modulus(
+            mesh, one, material, settings.friction, max_force, 1, device, squeeze_options, True, False
+        )
+        quick = dataclasses.replace(
+            settings, squeeze_steps=1, pickup_steps=1, acceleration_steps=1, num_directions=2
+        )
+        ex = GraspExperiments(mesh, one, material, quick, gripper=gripper, device=device,
+                              options=experiment_options or experiment_solver_options())  # fmt: skip
+        ex.pickup()
+        ex.acceleration("angular", [[0.0, 0.0, 1.0]])
+        out["seconds_warmup"] = time.perf_counter() - start
+    start = time.perf_counter()
+    ramp = _squeeze_modulus(
+        mesh, grasps, material, settings.friction, max_force, steps, device, squeeze_options, True, False
+    )
+    seconds = time.perf_counter() - start
+    out["squeeze_ramp"] = {
+        "steps": int(steps),
+        "max_force_n": float(max_force),
+        "seconds": seconds,
+        "grasps_per_s": b / seconds,
+        "status_per_grasp": ramp["status"].astype(int).tolist(),
+        "solved": int(np.count_nonzero(ramp["status"] == STATUS_SOLVED)),
+    }
+    out["experiments"] = {}
+    if not names:
+        return out
+    entries, times = run_experiments(
+        mesh, grasps, material, settings, names, device, experiment_options, gripper, directions_per_solver
+    )
+    problems = {
+        "pickup": 1,
+        "reorientation": settings.num_directions,
+        "linear": settings.num_directions,
+        "angular": settings.num_directions,
+    }
+    for name in names:
+        i = EXPERIMENT_NAMES.index(name)
+        codes = [ExperimentStatus(int(e["status"][i])) for e in entries]
+        metrics = [m for m, exp in METRIC_EXPERIMENT.items() if exp == name]
+        t = times.get(name, 0.0)
+        out["experiments"][name] = {
+            "seconds": t,
+            "grasps_per_s": b / t if t > 0 else None,
+            "problems_per_grasp": problems[name],  # FEM problems per grasp in the batch (directions / axes)
+            "status_per_grasp": [c.name for c in codes],
+            "ok": sum(c == ExperimentStatus.OK for c in codes),
+            "metrics_per_grasp": {m: [_number(e[f"metrics/{m}"]) for e in entries] for m in metrics},
+        }
+    return out
