@@ -140,17 +140,21 @@ def test_perturb_pose_moves_in_the_gripper_frame(grasps):
 
 
 # ---------------------------------------------------------------------------------------------- planner
-def test_closing_distances_match_the_sampler(predictor64, box, grasps):
-    planner = GraspPlanner(predictor64, box, 2e5, PRESETS["min_max_stress"])
+@pytest.mark.parametrize("dense", [False, True])
+def test_closing_distances_match_the_sampler(predictor64, box, grasps, dense):
+    planner = GraspPlanner(predictor64, box, 2e5, PRESETS["min_max_stress"], dense_geometry=dense)
     closing, touches = planner.closing_distances(torch.as_tensor(grasps.poses))
     np.testing.assert_allclose(closing.numpy(), grasps.closing_distances, atol=1e-12)
     assert touches.all()
 
 
-def test_gradient_matches_central_differences(predictor64, box, grasps):
+@pytest.mark.parametrize("dense", [False, True])
+def test_gradient_matches_central_differences(predictor64, box, grasps, dense):
     """dQ/dxi from autograd (through finger joint states, graph features and the network) against central
-    differences of the same function, in all six pose coordinates."""
-    planner = GraspPlanner(predictor64, box, 2e5, PRESETS["min_max_stress"], closing_temperature=2e-4)
+    differences of the same function, in all six pose coordinates (both finger-state strategies)."""
+    planner = GraspPlanner(
+        predictor64, box, 2e5, PRESETS["min_max_stress"], closing_temperature=2e-4, dense_geometry=dense
+    )
     T0 = torch.as_tensor(grasps.poses[[0, 5]])
     scale = torch.tensor([0.01] * 3 + [1.0] * 3, dtype=torch.float64)
 
@@ -201,9 +205,10 @@ def test_score_ranks_by_objective_and_puts_infeasible_last(predictor64, box, gra
     np.testing.assert_allclose(chunked, q, rtol=1e-12)
 
 
+@pytest.mark.parametrize("dense", [False, True])
 @pytest.mark.parametrize("sense", ["minimize", "maximize"])
-def test_refinement_improves_and_stays_feasible(predictor64, box, grasps, sense):
-    planner = GraspPlanner(predictor64, box, 2e5, PRESETS["min_max_stress"])
+def test_refinement_improves_and_stays_feasible(predictor64, box, grasps, sense, dense):
+    planner = GraspPlanner(predictor64, box, 2e5, PRESETS["min_max_stress"], dense_geometry=dense)
     r = planner.refine(grasps.poses[:6], steps=4, sense=sense)
     sign = 1.0 if sense == "minimize" else -1.0
     assert np.all(sign * r.q <= sign * r.initial_q + 1e-9)  # never worse than the input
@@ -219,6 +224,18 @@ def test_refinement_improves_and_stays_feasible(predictor64, box, grasps, sense)
     closing, touches = FRANKA_HAND.closing_distances(box.points, r.poses, faces=box.surface_faces)
     np.testing.assert_allclose(r.closing_distance, closing, atol=1e-12)
     assert touches.all()
+
+
+def test_dense_geometry_gives_the_same_refinement(predictor64, box, grasps):
+    """Dense (device) finger joint states and collision checks refine exactly as the host-selected ones."""
+    results = [
+        GraspPlanner(predictor64, box, 2e5, PRESETS["min_max_stress"], dense_geometry=dense).refine(
+            grasps.poses[:6], steps=3
+        )
+        for dense in (False, True)
+    ]
+    for key in ("poses", "q", "closing_distance", "q_history", "accepted"):
+        np.testing.assert_allclose(getattr(results[1], key), getattr(results[0], key), rtol=1e-12, atol=1e-15)
 
 
 def test_planner_rejects_bad_input(predictor64, box, grasps):

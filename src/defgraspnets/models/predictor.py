@@ -191,6 +191,7 @@ class DefGraspNetsPredictor:
         self._objects: dict[int, tuple[object, ObjectTemplate]] = {}
         self._on_device: dict[int, tuple[object, object]] = {}
         self._fingers: dict[int, tuple[FingerGeometry, FingerTemplate]] = {}
+        self._finger_frames: dict[int, tuple[FingerGeometry, Tensor, Tensor | None]] = {}
         self._capacity: dict[int, int] = {}
 
     @classmethod
@@ -249,6 +250,16 @@ class DefGraspNetsPredictor:
             self._fingers[key] = (fingers, t)
         return self._fingers[key][1]
 
+    def _finger_axes(self, fingers: FingerGeometry) -> tuple[Tensor, Tensor | None]:
+        """Closing axis (3,) and open finger frames (2, 4, 4) of ``fingers`` on the device (cached: no host
+        copies, which would synchronize an accelerator, per call)."""
+        key = id(fingers)
+        if key not in self._finger_frames or self._finger_frames[key][0] is not fingers:
+            dev, dt = self.device, self.dtype
+            open_pose = None if fingers.open_pose is None else _t(fingers.open_pose, dev, dt)
+            self._finger_frames[key] = (fingers, _t(fingers.closing_axis, dev, dt), open_pose)
+        return self._finger_frames[key][1:]
+
     @property
     def contact_capacities(self) -> dict[int, int]:
         """``{batch size: padded contact edge count}`` chosen so far (``static_shapes``)."""
@@ -289,7 +300,7 @@ class DefGraspNetsPredictor:
                 "finger_pose or gripper_pose + closing_distance"
             )
         finger = self._finger_template(fingers)
-        axis = _t(fingers.closing_axis, dev, dt)
+        axis, open_pose = self._finger_axes(fingers)
         if finger_pose is not None:
             pose = _t(finger_pose, dev, dt)
             cd = pose[..., :3, :3] @ axis
@@ -300,7 +311,7 @@ class DefGraspNetsPredictor:
                 )
             pose, cd = finger_contact_poses(
                 _t(gripper_pose, dev, dt),
-                _t(fingers.open_pose, dev, dt),
+                open_pose,
                 axis,
                 _t(closing_distance, dev, dt),
             )
