@@ -87,6 +87,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from defgraspnets.grasp.features import FEATURE_NAMES  # the 7 features of Table 6.2 (one definition)
+
 __all__ = [
     "EXPERIMENT_NAMES",
     "FEATURE_NAMES",
@@ -121,15 +123,6 @@ METRIC_NAMES = (
     "linear_instability_m_s2",
     "angular_instability_rad_s2",
     "deformation_controllability_m",
-)
-FEATURE_NAMES = (
-    "pure_dist",
-    "perp_dist",
-    "num_contacts",
-    "edge_dist",
-    "squeeze_dist",
-    "gripper_sep",
-    "grav_align",
 )
 # the experiment that measures each metric
 METRIC_EXPERIMENT = {
