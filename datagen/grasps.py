@@ -43,6 +43,7 @@ def main(cfg: DictConfig) -> None:
         friction=cfg.friction,
         poisson_ratio=cfg.poisson_ratio,
         density=cfg.density,
+        material_model=cfg.material_model,
         shard_count=cfg.shard_count,
         shard_index=cfg.shard_index,
         seed=cfg.seed,

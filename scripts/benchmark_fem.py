@@ -33,7 +33,7 @@ def main(cfg: DictConfig) -> None:
     size = np.asarray(cfg.object.size, dtype=float)
     mesh = fem.TetMesh.box(size=size, divisions=tuple(cfg.object.divisions), origin=-size / 2, name="box")
     grasps = sample_antipodal_grasps(mesh, num_grasps=cfg.num_grasps, seed=cfg.seed)
-    material = fem.Material(cfg.youngs_modulus, cfg.poisson_ratio, cfg.density)
+    material = fem.Material(cfg.youngs_modulus, cfg.poisson_ratio, cfg.density, model=cfg.material_model)
     options = squeeze_solver_options(
         linear_solver=cfg.linear_solver, max_newton_per_solve=cfg.max_newton_per_step
     )
@@ -59,7 +59,11 @@ def main(cfg: DictConfig) -> None:
             "vertices": mesh.num_vertices,
             "tets": mesh.num_tets,
         },
-        "material": {"youngs_modulus_pa": cfg.youngs_modulus, "poisson_ratio": cfg.poisson_ratio},
+        "material": {
+            "youngs_modulus_pa": cfg.youngs_modulus,
+            "poisson_ratio": cfg.poisson_ratio,
+            "model": cfg.material_model,
+        },
         "grasps": len(grasps),
         "steps": cfg.steps,
         "max_force_n": cfg.max_force,

@@ -44,7 +44,7 @@ def main(cfg: DictConfig) -> None:
     device = wp.get_device(cfg.device)
     names = resolve_experiments(cfg.experiments)
     settings = resolve_experiment_settings(OmegaConf.to_container(cfg.settings, resolve=True), cfg.friction)
-    material = fem.Material(cfg.youngs_modulus, cfg.poisson_ratio, cfg.density)
+    material = fem.Material(cfg.youngs_modulus, cfg.poisson_ratio, cfg.density, model=cfg.material_model)
     squeeze_options = squeeze_solver_options(
         linear_solver=cfg.linear_solver, max_newton_per_solve=cfg.max_newton_per_step
     )
@@ -60,6 +60,7 @@ def main(cfg: DictConfig) -> None:
             "load_average": [round(v, 2) for v in os.getloadavg()],
         },
         "material": {"youngs_modulus_pa": cfg.youngs_modulus, "poisson_ratio": cfg.poisson_ratio,
+                     "model": cfg.material_model,
                      "density_kg_m3": cfg.density},
         "experiments": list(names),
         "settings": dataclasses.asdict(settings),

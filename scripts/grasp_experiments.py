@@ -46,7 +46,7 @@ def main(cfg: DictConfig) -> dict:
     )
     if len(grasps) == 0:
         raise RuntimeError(f"no collision-free antipodal grasp found on {mesh.name}")
-    material = fem.Material(cfg.youngs_modulus, cfg.poisson_ratio, cfg.density)
+    material = fem.Material(cfg.youngs_modulus, cfg.poisson_ratio, cfg.density, model=cfg.material_model)
     experiments = GraspExperiments(
         mesh,
         grasps,
@@ -70,6 +70,7 @@ def main(cfg: DictConfig) -> dict:
         "num_vertices": mesh.num_vertices,
         "mass_kg": results.mass,
         "material": {"youngs_modulus_pa": cfg.youngs_modulus, "poisson_ratio": cfg.poisson_ratio,
+                     "model": cfg.material_model,
                      "density_kg_m3": cfg.density},
         "settings": OmegaConf.to_container(cfg.settings),
         "experiments": list(cfg.experiments),

@@ -63,6 +63,7 @@ def main(cfg: DictConfig) -> dict:
         fem_device=cfg.fem_device,
         poisson_ratio=cfg.poisson_ratio,
         density=cfg.density,
+        material_model=cfg.material_model,
         progress=cfg.progress,
     )
     best = report["best"]

@@ -18,6 +18,12 @@ def corotated_cauchy_stress(F: np.ndarray, mu: float, lam: float) -> np.ndarray:
     return P @ F.T / J
 
 
+def neohookean_cauchy_stress(F: np.ndarray, mu: float, lam: float) -> np.ndarray:
+    """Cauchy stress of compressible Neo-Hookean, mu / J (F F^T - I) + lambda log J / J I (Bonet and Wood)."""
+    J = np.linalg.det(F)
+    return mu / J * (F @ F.T - np.eye(3)) + lam * np.log(J) / J * np.eye(3)
+
+
 def linear_elastic_stress(grad_u: np.ndarray, E: float, nu: float) -> np.ndarray:
     """Hooke's law sigma = lambda tr(eps) I + 2 mu eps, eps = sym(grad u)."""
     mu = E / (2 * (1 + nu))

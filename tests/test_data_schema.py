@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -63,6 +64,7 @@ def test_round_trip(tmp_path):
     np.testing.assert_array_equal(shard.object.tets, obj.tets)
     np.testing.assert_array_equal(shard.object.surface_faces, obj.surface_faces)
     np.testing.assert_array_equal(shard.object.youngs_modulus, obj.youngs_modulus)
+    assert shard.object.material_model == obj.material_model == "corotated"
     np.testing.assert_array_equal(shard.fingers.vertices, fingers.vertices)
     np.testing.assert_array_equal(shard.fingers.closing_axis, fingers.closing_axis)
     np.testing.assert_array_equal(shard.grasp_pose, pose)
@@ -80,6 +82,33 @@ def test_round_trip(tmp_path):
     with h5py.File(path) as f:
         assert f["ramp/von_mises"].compression == "lzf" and "progress" not in f
     assert parse_shard_name(path) == ("cube", 0, 1)
+
+
+def test_material_model_round_trip_and_shards_without_it(tmp_path):
+    obj, fingers, pose, fpose, cdir = _inputs()
+    obj = dataclasses.replace(obj, material_model="neohookean")
+    path = tmp_path / shard_file_name("cube", 0, 1)
+    w = GraspShardWriter.create(path, obj, fingers, pose, fpose, cdir, S, "test")
+    _write_all(w, obj, fpose, cdir)
+    w.finalize()
+    assert GraspShard(path).object.material_model == "neohookean"
+    # a shard written before the attribute existed reads as the co-rotated model it was made with
+    with h5py.File(path, "a") as f:
+        del f["material"].attrs["model"]
+    assert GraspShard(path).object.material_model == "corotated"
+    with pytest.raises(ValueError, match="material_model"):
+        dataclasses.replace(obj, material_model="hookean")
+
+
+def test_unfinished_shard_of_another_material_model_is_not_resumed(tmp_path):
+    obj, fingers, pose, fpose, cdir = _inputs()
+    path = tmp_path / shard_file_name("cube", 0, 1)
+    w = GraspShardWriter.create(path, obj, fingers, pose, fpose, cdir, S, "test")
+    _write_all(w, obj, fpose, cdir, entries=w.pending()[:1])
+    w.close()
+    other = dataclasses.replace(obj, material_model="neohookean")
+    with pytest.raises(ValueError, match="different object/material"):
+        GraspShardWriter.create(path, other, fingers, pose, fpose, cdir, S, "test")
 
 
 def test_resumed_write_equals_uninterrupted(tmp_path):

@@ -44,6 +44,7 @@ def test_shard_holds_physical_fields(data_dir):
         mesh.num_vertices,
     )
     np.testing.assert_array_equal(sh.object.youngs_modulus, MODULI)
+    assert sh.object.material_model == "neohookean"  # the generator's default, recorded in the shard
     assert sh.attrs["object_category"] == "cuboid" and sh.attrs["generator_version"].startswith(
         "defgraspnets"
     )
@@ -145,6 +146,7 @@ def test_really_failing_solve_is_recorded(tmp_path):
         (dict(num_grasps=0), "num_grasps"),
         (dict(poisson_ratio=0.5), "poisson"),
         (dict(shard_count=2, shard_index=2), "shard_index"),
+        (dict(material_model="hookean"), "material_model"),
     ],
 )
 def test_bad_input_raises(tmp_path, kw, match):

@@ -1,9 +1,9 @@
-"""Fixed co-rotated elasticity: derivatives, patch test, rigid motions (thesis ch. 6 engine)."""
+"""Hyperelastic elements (fixed co-rotated, Neo-Hookean): derivatives, patch tests, rigid motions."""
 
 import numpy as np
 import pytest
 import warp as wp
-from fem_helpers import corotated_cauchy_stress, linear_elastic_stress
+from fem_helpers import corotated_cauchy_stress, linear_elastic_stress, neohookean_cauchy_stress
 from scipy.spatial.transform import Rotation
 
 from defgraspnets import fem
@@ -13,7 +13,10 @@ E, NU = 2e5, 0.3
 MAT = fem.Material(E, NU, 1000.0)
 
 
-def _element(x, rest, mu, lam, exact=False):
+MODELS = fem.MATERIAL_MODELS
+
+
+def _element(x, rest, mu, lam, exact=False, model="corotated"):
     """Energy, gradient (12,) and Hessian (12, 12, projected or exact) of one tet from the Warp kernels."""
     m = fem.TetMesh(rest, [[0, 1, 2, 3]])
     args = dict(device="cpu")
@@ -22,9 +25,10 @@ def _element(x, rest, mu, lam, exact=False):
     vol = wp.array(m.volumes, dtype=wp.float64, **args)
     mu_a, lam_a = wp.array([mu], dtype=wp.float64, **args), wp.array([lam], dtype=wp.float64, **args)
     act = wp.array([1], dtype=wp.int32, **args)
+    code = wp.array([MODELS.index(model)], dtype=wp.int32, **args)
     pos = wp.array(x, dtype=wp.vec3d, **args)
     e = wp.zeros(1, dtype=wp.float64, **args)
-    wp.launch(ek.elastic_energy_kernel, (1, 1), [pos, tets, binv, vol, mu_a, lam_a, 4, act, e], **args)
+    wp.launch(ek.elastic_energy_kernel, (1, 1), [pos, tets, binv, vol, mu_a, lam_a, code, 4, act, e], **args)
     g = wp.zeros(4, dtype=wp.vec3d, **args)
     H = wp.zeros(16, dtype=wp.mat33d, **args)
     fs = wp.zeros(1, dtype=wp.float64, **args)
@@ -39,6 +43,7 @@ def _element(x, rest, mu, lam, exact=False):
             vol,
             mu_a,
             lam_a,
+            code,
             blocks,
             4,
             4,
@@ -61,54 +66,85 @@ def _element(x, rest, mu, lam, exact=False):
 REST = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]) * 0.01
 
 
-def test_element_gradient_and_hessian_match_finite_differences():
-    rng = np.random.default_rng(3)
-    F = 1.2 * np.eye(3) + 0.05 * rng.normal(size=(3, 3))  # stretched: no eigenvalue is clamped
-    x = REST @ F.T + 0.002
-    _, g, H = _element(x, REST, MAT.shear_modulus, MAT.lame_lambda)
+def _fd_gradient_hessian(x, model):
     h = 1e-8
     g_fd, H_fd = np.zeros(12), np.zeros((12, 12))
     for i in range(12):
         xp, xm = x.ravel().copy(), x.ravel().copy()
         xp[i] += h
         xm[i] -= h
-        ep, gp, _ = _element(xp.reshape(4, 3), REST, MAT.shear_modulus, MAT.lame_lambda)
-        em, gm, _ = _element(xm.reshape(4, 3), REST, MAT.shear_modulus, MAT.lame_lambda)
+        ep, gp, _ = _element(xp.reshape(4, 3), REST, MAT.shear_modulus, MAT.lame_lambda, model=model)
+        em, gm, _ = _element(xm.reshape(4, 3), REST, MAT.shear_modulus, MAT.lame_lambda, model=model)
         g_fd[i] = (ep - em) / (2 * h)
         H_fd[:, i] = (gp - gm) / (2 * h)
+    return g_fd, H_fd
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_element_gradient_and_hessian_match_finite_differences(model):
+    rng = np.random.default_rng(3)
+    F = 1.2 * np.eye(3) + 0.05 * rng.normal(size=(3, 3))  # stretched: no eigenvalue is clamped
+    x = REST @ F.T + 0.002
+    _, g, H = _element(x, REST, MAT.shear_modulus, MAT.lame_lambda, model=model)
+    g_fd, H_fd = _fd_gradient_hessian(x, model)
     assert np.abs(g - g_fd).max() < 1e-6 * np.abs(g).max()
     assert np.abs(H - H_fd).max() < 1e-6 * np.abs(H).max()
 
 
-def test_exact_element_hessian_of_a_compressed_tet_matches_finite_differences():
-    # compressed: the twist eigenvalues 2 mu (1 - 2 / (s_i + s_j)) are negative, so projection changes H
-    x = REST @ np.diag([0.7, 0.8, 0.9]).T
-    _, _, H = _element(x, REST, MAT.shear_modulus, MAT.lame_lambda, exact=True)
-    _, _, H_psd = _element(x, REST, MAT.shear_modulus, MAT.lame_lambda)
-    h = 1e-8
-    H_fd = np.zeros((12, 12))
-    for i in range(12):
-        xp, xm = x.ravel().copy(), x.ravel().copy()
-        xp[i] += h
-        xm[i] -= h
-        H_fd[:, i] = (
-            _element(xp.reshape(4, 3), REST, MAT.shear_modulus, MAT.lame_lambda)[1]
-            - _element(xm.reshape(4, 3), REST, MAT.shear_modulus, MAT.lame_lambda)[1]
-        ) / (2 * h)
+@pytest.mark.parametrize(
+    "model, F",
+    [
+        ("corotated", np.diag([0.7, 0.8, 0.9])),
+        # Neo-Hookean: negative twist eigenvalue mu + (lambda log J - mu) / (s_i s_j) needs strong compression
+        ("neohookean", np.diag([0.3, 0.35, 0.9])),
+        ("neohookean", np.array([[0.4, 0.1, 0.0], [0.05, 0.3, 0.02], [0.0, -0.03, 1.1]])),
+    ],
+)
+def test_exact_element_hessian_of_a_compressed_tet_matches_finite_differences(model, F):
+    # compressed: some twist eigenvalues are negative, so the projection changes H
+    x = REST @ F.T
+    _, g, H = _element(x, REST, MAT.shear_modulus, MAT.lame_lambda, exact=True, model=model)
+    _, _, H_psd = _element(x, REST, MAT.shear_modulus, MAT.lame_lambda, model=model)
+    g_fd, H_fd = _fd_gradient_hessian(x, model)
+    assert np.abs(g - g_fd).max() < 1e-6 * np.abs(g).max()
     assert np.abs(H - H_fd).max() < 1e-6 * np.abs(H).max()
     assert np.linalg.eigvalsh(H).min() < -1e-3 * np.abs(H).max()  # truly indefinite
     assert np.abs(H_psd - H).max() > 1e-2 * np.abs(H).max()  # and the projection differs
 
 
-def test_element_hessian_is_psd_when_compressed_and_inverted():
-    for F in (np.diag([0.3, 0.4, 1.0]), np.diag([1.0, 1.0, -0.2]), np.diag([0.05, 2.0, 1.5])):
-        _, _, H = _element(REST @ F.T, REST, MAT.shear_modulus, MAT.lame_lambda)
+@pytest.mark.parametrize("model", MODELS)
+def test_element_hessian_is_psd_when_compressed_and_inverted(model):
+    states = [np.diag([0.3, 0.4, 1.0]), np.diag([0.05, 2.0, 1.5]), np.diag([0.2, 0.15, 0.5])]
+    if model == "corotated":
+        states.append(np.diag([1.0, 1.0, -0.2]))  # inverted: finite co-rotated energy
+    for F in states:
+        _, _, H = _element(REST @ F.T, REST, MAT.shear_modulus, MAT.lame_lambda, model=model)
         assert np.linalg.eigvalsh(H).min() > -1e-9 * np.abs(H).max()
 
 
-def test_element_forces_and_stiffness_at_rest_are_those_of_linear_elasticity():
-    e, g, H = _element(REST, REST, MAT.shear_modulus, MAT.lame_lambda)
-    assert abs(e) < 1e-25 and np.abs(g).max() < 1e-12
+def test_neohookean_energy_is_infinite_for_inverted_and_flat_tets_and_grows_towards_collapse():
+    mu, lam = MAT.shear_modulus, MAT.lame_lambda
+    for F in (np.diag([1.0, 1.0, -0.2]), np.diag([1.0, 1.0, 0.0])):
+        e, _, _ = _element(REST @ F.T, REST, mu, lam, model="neohookean")
+        assert e == np.inf
+    volume = 1e-6 / 6
+    energies = []
+    for j in (0.1, 1e-3, 1e-6):
+        energies.append(_element(REST @ np.diag([1, 1, j]).T, REST, mu, lam, model="neohookean")[0])
+        lj = np.log(j)
+        psi = 0.5 * mu * (j * j - 1) - mu * lj + 0.5 * lam * lj * lj
+        assert energies[-1] == pytest.approx(volume * psi, rel=1e-9)
+    assert energies[0] < energies[1] < energies[2]
+    # the co-rotated energy of the same collapse stays bounded: that is what lets soft elements invert
+    flat = _element(REST @ np.diag([1, 1, 1e-6]).T, REST, mu, lam)[0]
+    assert flat == pytest.approx(volume * (mu + lam / 2) * (1 - 1e-6) ** 2, rel=1e-9)
+    assert energies[2] > 20 * flat
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_element_forces_and_stiffness_at_rest_are_those_of_linear_elasticity(model):
+    e, g, H = _element(REST, REST, MAT.shear_modulus, MAT.lame_lambda, model=model)
+    assert abs(e) < 1e-15 * MAT.shear_modulus * 1e-6 / 6 and np.abs(g).max() < 1e-12  # round-off of I1 - 3
     # K u for an affine u = G X equals the linear-elastic nodal forces V sigma beta_a
     G = np.array([[1e-3, 2e-4, 0], [0, -5e-4, 3e-4], [1e-4, 0, 2e-4]])
     u = (REST @ G.T).ravel()
@@ -121,14 +157,14 @@ def test_element_forces_and_stiffness_at_rest_are_those_of_linear_elasticity():
     assert np.sum(np.abs(np.linalg.eigvalsh(H)) < 1e-9 * np.abs(H).max()) == 6
 
 
-def _patch_solve(F_affine, translation=(0.0, 0.0, 0.0)):
+def _patch_solve(F_affine, translation=(0.0, 0.0, 0.0), material=MAT):
     """Box whose whole boundary follows x = F X + c; returns (solver mesh, equilibrium)."""
     mesh = fem.TetMesh.box(size=(0.02, 0.03, 0.025), divisions=(3, 3, 3))
     target = mesh.points @ F_affine.T + translation - mesh.points
     solver = fem.QuasiStaticSolver(
         mesh,
         [],
-        MAT,
+        material,
         fixed=mesh.surface_vertices,
         device="cpu",
         options=fem.SolverOptions(record_tet_stress=True),
@@ -166,6 +202,30 @@ def test_patch_test_large_strain_gives_constant_exact_stress():
     s = np.linalg.svd(F, compute_uv=False)
     psi = MAT.shear_modulus * np.sum((s - 1) ** 2) + 0.5 * MAT.lame_lambda * (np.prod(s) - 1) ** 2
     assert eq.strain_energy[0] == pytest.approx(mesh.volume * psi, rel=1e-10)
+
+
+def test_neohookean_patch_test_at_large_compression_gives_the_analytic_stress():
+    """60 % volume loss (J = 0.4): the interior follows the affine map and every tet carries the closed-form
+    Neo-Hookean Cauchy stress, computed independently with NumPy."""
+    F = np.array([[0.6, 0.1, 0.0], [-0.05, 0.8, 0.1], [0.02, 0.0, 0.85]])
+    nh = fem.Material(E, NU, 1000.0, model="neohookean")
+    mesh, eq, target = _patch_solve(F, material=nh)
+    interior = ~mesh.is_surface_vertex
+    np.testing.assert_allclose(eq.displacement[0, interior], target[interior], atol=1e-11)
+    expected = neohookean_cauchy_stress(F, nh.shear_modulus, nh.lame_lambda)
+    np.testing.assert_allclose(
+        eq.tet_stress[0],
+        np.broadcast_to(expected, eq.tet_stress[0].shape),
+        atol=1e-7 * np.abs(expected).max(),
+    )
+    J, i1 = np.linalg.det(F), np.sum(F * F)
+    psi = (
+        0.5 * nh.shear_modulus * (i1 - 3)
+        - nh.shear_modulus * np.log(J)
+        + 0.5 * nh.lame_lambda * np.log(J) ** 2
+    )
+    assert eq.strain_energy[0] == pytest.approx(mesh.volume * psi, rel=1e-10)
+    assert eq.inverted_tets[0] == 0
 
 
 def test_rigidly_moved_mesh_has_zero_stress():

@@ -13,6 +13,7 @@ One file per object shard, named ``<object>__shard<i>of<n>.h5``. All quantities 
     /material/youngs_modulus   (K,)          float64  E [Pa]
     /material/poisson_ratio    (K,)          float64
     /material/density          (K,)          float64  [kg/m^3]
+                               attr model: constitutive energy of fem.Material ("corotated" when absent)
     /gripper/finger_vertices   (V, 3)        float64  finger-pad surface, finger frame [m] (both fingers)
     /gripper/finger_faces      (T, 3)        int64    attr closing_axis_in_finger_frame (3,)
     /grasps/pose               (G, 4, 4)     float64  open-gripper pose in the object frame
@@ -87,6 +88,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from defgraspnets.fem.material import MATERIAL_MODELS
 from defgraspnets.grasp.features import FEATURE_NAMES  # the 7 features of Table 6.2 (one definition)
 
 __all__ = [
@@ -177,6 +179,7 @@ class ObjectRecord:
         name, category, source: identity (``source`` is ``"primitive"`` or ``"real"``).
         points: (N, 3) rest positions [m]. tets: (M, 4). surface_faces: (F, 3) outward.
         youngs_modulus, poisson_ratio, density: (K,) each [Pa], [-], [kg/m^3].
+        material_model: the FEM's constitutive energy (:data:`defgraspnets.fem.MATERIAL_MODELS`).
     """
 
     name: str
@@ -188,8 +191,14 @@ class ObjectRecord:
     youngs_modulus: np.ndarray
     poisson_ratio: np.ndarray
     density: np.ndarray
+    material_model: str = "corotated"
 
     def __post_init__(self):
+        if self.material_model not in MATERIAL_MODELS:
+            raise ValueError(
+                f"object {self.name!r}: material_model must be one of {MATERIAL_MODELS}, "
+                f"got {self.material_model!r}"
+            )
         self.points = np.asarray(self.points, dtype=np.float64)
         self.tets = np.asarray(self.tets, dtype=np.int64)
         self.surface_faces = np.asarray(self.surface_faces, dtype=np.int64)
@@ -434,6 +443,12 @@ _ROOT_ATTRS = (
 _RAMP_FIELDS = ("force", "von_mises", "displacement", "finger_travel")
 
 
+def _material_model(f: h5py.File) -> str:
+    """The shard's constitutive model (an attribute of /material; older shards lack it: corotated)."""
+    model = f["material"].attrs.get("model", "corotated")
+    return model.decode() if isinstance(model, bytes) else str(model)
+
+
 def _check_layout(f: h5py.File, path: Path, require_progress: bool = False) -> dict[str, int]:
     """Validate datasets and attributes of an open shard; return the sizes {N, M, F, K, V, T, G, S}."""
     schema = f.attrs.get("schema")
@@ -534,6 +549,7 @@ class GraspShard:
                 youngs_modulus=f["material/youngs_modulus"][()],
                 poisson_ratio=f["material/poisson_ratio"][()],
                 density=f["material/density"][()],
+                material_model=_material_model(f),
             )
             self.fingers = GripperFingers(g["finger_vertices"][()], g["finger_faces"][()], np.asarray(axis))
             self.grasp_pose = f["grasps/pose"][()]
@@ -879,6 +895,7 @@ class GraspShardWriter:
             f.create_dataset(name, data=np.asarray(arr, dtype=_LAYOUT[name][1]))
         f["gripper/finger_faces"].attrs["closing_axis_in_finger_frame"] = fingers.closing_axis
         f["gripper"].attrs["closing_axis_in_finger_frame"] = fingers.closing_axis
+        f["material"].attrs["model"] = obj.material_model
         nan = np.nan
         f.create_dataset("ramp/force", shape=(k, g, s), dtype=np.float64, fillvalue=nan)
         f.create_dataset("ramp/finger_travel", shape=(k, g, s, 2), dtype=np.float64, fillvalue=nan)
@@ -933,7 +950,7 @@ class GraspShardWriter:
                     obj.name,
                     obj.category,
                     obj.source,
-                ):
+                ) or _material_model(f) != obj.material_model:
                     return False
                 return all(
                     f[name].shape == np.shape(arr) and np.array_equal(f[name][()], arr)

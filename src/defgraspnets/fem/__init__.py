@@ -22,7 +22,7 @@ Example::
 
 from .bodies import BodyError, Capsule, Control, Plane, RigidBody, RoundedBox, Sphere, TriangleMesh
 from .loads import STANDARD_GRAVITY, BodyLoad
-from .material import Material, MaterialError
+from .material import MATERIAL_MODELS, Material, MaterialError
 from .mesh import MeshError, TetMesh
 from .pressure import STANDARD_ATMOSPHERE, PressureLoad, PressureSurface
 from .results import Equilibrium, SolveStatus
@@ -34,6 +34,7 @@ __all__ = [
     "Capsule",
     "Control",
     "Equilibrium",
+    "MATERIAL_MODELS",
     "Material",
     "MaterialError",
     "MeshError",

@@ -95,6 +95,102 @@ def corotated_principal_stress(sigma: wp.vec3d, mu: f64, lam: f64) -> wp.vec3d:
     )
 
 
+NEO_HOOKEAN = 1  # constitutive model codes of the kernels (see Material.model)
+
+
+@wp.func
+def neohookean_energy_density(sigma: wp.vec3d, mu: f64, lam: f64) -> f64:
+    """Psi = mu/2 (I1 - 3) - mu log J + lambda/2 (log J)^2 [J/m^3], +inf for J <= 0 (inverted)."""
+    j = sigma[0] * sigma[1] * sigma[2]
+    if j <= f64(0.0):
+        return f64(wp.inf)
+    lj = wp.log(j)
+    return f64(0.5) * mu * (wp.dot(sigma, sigma) - f64(3.0)) - mu * lj + f64(0.5) * lam * lj * lj
+
+
+@wp.func
+def neohookean_principal_stress(sigma: wp.vec3d, mu: f64, lam: f64) -> wp.vec3d:
+    """Psi_i = mu sigma_i + (lambda log J - mu) / sigma_i [Pa] (J clamped to > 0 for inverted input)."""
+    j = wp.max(sigma[0] * sigma[1] * sigma[2], f64(1e-300))
+    c = lam * wp.log(j) - mu
+    return wp.vec3d(
+        mu * sigma[0] + c / sigma[0],
+        mu * sigma[1] + c / sigma[1],
+        mu * sigma[2] + c / sigma[2],
+    )
+
+
+@wp.func
+def energy_density(model: int, sigma: wp.vec3d, mu: f64, lam: f64) -> f64:
+    if model == NEO_HOOKEAN:
+        return neohookean_energy_density(sigma, mu, lam)
+    return corotated_energy_density(sigma, mu, lam)
+
+
+@wp.func
+def principal_stress(model: int, sigma: wp.vec3d, mu: f64, lam: f64) -> wp.vec3d:
+    if model == NEO_HOOKEAN:
+        return neohookean_principal_stress(sigma, mu, lam)
+    return corotated_principal_stress(sigma, mu, lam)
+
+
+@wp.func
+def stretch_hessian(model: int, s: wp.vec3d, mu: f64, lam: f64) -> wp.mat33d:
+    """A_ij = d2Psi / dsigma_i dsigma_j.
+
+    Co-rotated: A_ii = 2 mu + lambda c_i^2, A_ij = lambda (c_i c_j + (J - 1) sigma_k), c_i = J / sigma_i.
+    Neo-Hookean: A_ii = mu + (mu + lambda (1 - log J)) / sigma_i^2, A_ij = lambda / (sigma_i sigma_j)."""
+    one = f64(1.0)
+    two = f64(2.0)
+    if model == NEO_HOOKEAN:
+        lj = wp.log(wp.max(s[0] * s[1] * s[2], f64(1e-300)))
+        d = mu + lam * (one - lj)
+        return wp.mat33d(
+            mu + d / (s[0] * s[0]),
+            lam / (s[0] * s[1]),
+            lam / (s[0] * s[2]),
+            lam / (s[1] * s[0]),
+            mu + d / (s[1] * s[1]),
+            lam / (s[1] * s[2]),
+            lam / (s[2] * s[0]),
+            lam / (s[2] * s[1]),
+            mu + d / (s[2] * s[2]),
+        )
+    jm1 = s[0] * s[1] * s[2] - one
+    c = wp.vec3d(s[1] * s[2], s[0] * s[2], s[0] * s[1])
+    return wp.mat33d(
+        two * mu + lam * c[0] * c[0],
+        lam * (c[0] * c[1] + jm1 * s[2]),
+        lam * (c[0] * c[2] + jm1 * s[1]),
+        lam * (c[1] * c[0] + jm1 * s[2]),
+        two * mu + lam * c[1] * c[1],
+        lam * (c[1] * c[2] + jm1 * s[0]),
+        lam * (c[2] * c[0] + jm1 * s[1]),
+        lam * (c[2] * c[1] + jm1 * s[0]),
+        two * mu + lam * c[2] * c[2],
+    )
+
+
+@wp.func
+def pair_eigenvalues(model: int, s: wp.vec3d, i: int, j: int, k: int, mu: f64, lam: f64) -> wp.vec2d:
+    """(twist, flip) eigenvalues of the pair (i, j), k the third index: (Psi_i + Psi_j) / (sigma_i + sigma_j)
+    and (Psi_i - Psi_j) / (sigma_i - sigma_j) in closed form (no division by sigma_i - sigma_j).
+
+    Co-rotated: 2 mu (1 - 2 / (sigma_i + sigma_j)) + lambda (J - 1) sigma_k and 2 mu - lambda (J - 1) sigma_k.
+    Neo-Hookean: mu + c and mu - c, c = (lambda log J - mu) / (sigma_i sigma_j).
+    """
+    one = f64(1.0)
+    two = f64(2.0)
+    if model == NEO_HOOKEAN:
+        c = (lam * wp.log(wp.max(s[0] * s[1] * s[2], f64(1e-300))) - mu) / (s[i] * s[j])
+        return wp.vec2d(mu + c, mu - c)
+    jm1 = s[0] * s[1] * s[2] - one
+    denom = s[i] + s[j]
+    if wp.abs(denom) < f64(1e-6):
+        denom = wp.where(denom < f64(0.0), f64(-1e-6), f64(1e-6))
+    return wp.vec2d(two * mu * (one - two / denom) + lam * jm1 * s[k], two * mu - lam * jm1 * s[k])
+
+
 @wp.func
 def von_mises(s: wp.mat33d) -> f64:
     """Von Mises equivalent stress sqrt(3/2 s_dev : s_dev) of a symmetric stress tensor [Pa]."""
@@ -138,18 +234,19 @@ def elastic_energy_kernel(
     rest_volume: wp.array(dtype=wp.float64),
     mu: wp.array(dtype=wp.float64),
     lam: wp.array(dtype=wp.float64),
+    model: wp.array(dtype=wp.int32),
     num_vertices: int,
     active: wp.array(dtype=wp.int32),
     energy: wp.array(dtype=wp.float64),
 ):
-    """energy[b] += V_e Psi(F_e) for every (problem b, tet e)."""
+    """energy[b] += V_e Psi(F_e) for every (problem b, tet e) (+inf where a Neo-Hookean tet is inverted)."""
     b, e = wp.tid()
     if active[b] == 0:
         return
     o = b * num_vertices
     F = tet_deformation_gradient(positions, tets, o, e, rest_inverse[e])
     U, s, V = principal_stretches(F)
-    wp.atomic_add(energy, b, rest_volume[e] * corotated_energy_density(s, mu[b], lam[b]))
+    wp.atomic_add(energy, b, rest_volume[e] * energy_density(model[b], s, mu[b], lam[b]))
 
 
 @wp.kernel
@@ -160,6 +257,7 @@ def elastic_gradient_hessian_kernel(
     rest_volume: wp.array(dtype=wp.float64),
     mu: wp.array(dtype=wp.float64),
     lam: wp.array(dtype=wp.float64),
+    model: wp.array(dtype=wp.int32),
     tet_blocks: wp.array2d(dtype=wp.int32),
     num_vertices: int,
     rows_per_problem: int,
@@ -186,30 +284,18 @@ def elastic_gradient_hessian_kernel(
     U, s, V = principal_stretches(F)
     m = mu[b]
     l = lam[b]
+    mat = model[b]
     one = f64(1.0)
-    two = f64(2.0)
 
     # forces: grad_a = V_e P beta_a
-    P = U * wp.diag(corotated_principal_stress(s, m, l)) * wp.transpose(V)
+    P = U * wp.diag(principal_stress(mat, s, m, l)) * wp.transpose(V)
     for a in range(4):
         g = vol * (P * shape_gradient(B, a))
         wp.atomic_add(gradient, b * rows_per_problem + tets[e, a], g)
         wp.atomic_max(force_scale, b, max_abs_component(g))
 
-    # scaling modes: A_ii = 2 mu + lambda c_i^2, A_ij = lambda (c_i c_j + (J - 1) sigma_k), c_i = J / sigma_i
-    jm1 = s[0] * s[1] * s[2] - one
-    c = wp.vec3d(s[1] * s[2], s[0] * s[2], s[0] * s[1])
-    A = wp.mat33d(
-        two * m + l * c[0] * c[0],
-        l * (c[0] * c[1] + jm1 * s[2]),
-        l * (c[0] * c[2] + jm1 * s[1]),
-        l * (c[1] * c[0] + jm1 * s[2]),
-        two * m + l * c[1] * c[1],
-        l * (c[1] * c[2] + jm1 * s[0]),
-        l * (c[2] * c[0] + jm1 * s[1]),
-        l * (c[2] * c[1] + jm1 * s[0]),
-        two * m + l * c[2] * c[2],
-    )
+    # scaling modes: eigenvectors z_k of A = d2Psi/dsigma2 give U diag(z_k) V^T
+    A = stretch_hessian(mat, s, m, l)
     Z = wp.mat33d()
     d = wp.vec3d()
     wp.eig3(A, Z, d)
@@ -236,11 +322,9 @@ def elastic_gradient_hessian_kernel(
             i = 1
             jj = 2
             k3 = 0
-        denom = s[i] + s[jj]
-        if wp.abs(denom) < f64(1e-6):
-            denom = wp.where(denom < f64(0.0), f64(-1e-6), f64(1e-6))
-        twist = two * m * (one - two / denom) + l * jm1 * s[k3]
-        flip = two * m - l * jm1 * s[k3]
+        tf = pair_eigenvalues(mat, s, i, jj, k3, m, l)
+        twist = tf[0]
+        flip = tf[1]
         W = set_mode_row(W, 3 + 2 * p, pair_mode(U, V, i, jj, f64(-1.0)), twist, B, vol)
         W = set_mode_row(W, 4 + 2 * p, pair_mode(U, V, i, jj, f64(1.0)), flip, B, vol)
         if signed and twist < f64(0.0):
@@ -268,6 +352,7 @@ def tet_stress_kernel(
     rest_volume: wp.array(dtype=wp.float64),
     mu: wp.array(dtype=wp.float64),
     lam: wp.array(dtype=wp.float64),
+    model: wp.array(dtype=wp.int32),
     num_vertices: int,
     stress: wp.array(dtype=wp.mat33d),
     energy: wp.array(dtype=wp.float64),
@@ -279,10 +364,10 @@ def tet_stress_kernel(
     F = tet_deformation_gradient(positions, tets, o, e, rest_inverse[e])
     U, s, V = principal_stretches(F)
     j = s[0] * s[1] * s[2]
-    P = U * wp.diag(corotated_principal_stress(s, mu[b], lam[b])) * wp.transpose(V)
+    P = U * wp.diag(principal_stress(model[b], s, mu[b], lam[b])) * wp.transpose(V)
     sig = P * wp.transpose(F) / j
     stress[b * tets.shape[0] + e] = f64(0.5) * (sig + wp.transpose(sig))
-    wp.atomic_add(energy, b, rest_volume[e] * corotated_energy_density(s, mu[b], lam[b]))
+    wp.atomic_add(energy, b, rest_volume[e] * energy_density(model[b], s, mu[b], lam[b]))
     if j <= f64(0.0):
         wp.atomic_add(inverted, b, 1)
 

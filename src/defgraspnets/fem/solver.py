@@ -42,7 +42,7 @@ from . import kernels as kk
 from . import pressure as pk
 from .bodies import SHAPE_KIND, BodyError, RigidBody, TriangleMesh, check_rigid_transform
 from .loads import BodyLoad
-from .material import Material
+from .material import MATERIAL_MODELS, Material
 from .mesh import TetMesh
 from .pressure import PressureLoad, PressureSurface
 from .results import Equilibrium, SolveStatus
@@ -479,6 +479,8 @@ class QuasiStaticSolver:
         self._youngs = wp.array(self._youngs_np, dtype=wp.float64, device=dev)
         self._mu = wp.array([m.shear_modulus for m in mats], dtype=wp.float64, device=dev)
         self._lam = wp.array([m.lame_lambda for m in mats], dtype=wp.float64, device=dev)
+        self._model = wp.array([MATERIAL_MODELS.index(m.model) for m in mats], dtype=wp.int32, device=dev)
+        self._barrier = any(m.model == "neohookean" for m in mats)
         N, D = self.mesh.num_vertices, self.num_dofs
         shift = np.zeros((self.batch_size, self.rows_per_problem, 3))
         scale = self.options.regularization * self._youngs_np[:, None] * self.mesh.vertex_size[None, :]
@@ -606,6 +608,7 @@ class QuasiStaticSolver:
                 self._volume,
                 self._mu,
                 self._lam,
+                self._model,
                 N,
                 active,
                 e,
@@ -757,6 +760,7 @@ class QuasiStaticSolver:
                 self._volume,
                 self._mu,
                 self._lam,
+                self._model,
                 self._tet_blocks,
                 N,
                 self.rows_per_problem,
@@ -1021,8 +1025,7 @@ class QuasiStaticSolver:
         )
         while todo.any():
             log.debug("load increment: fractions %s -> %s", lam_done[todo][:4], lam_try[todo][:4])
-            self._predict(change * (lam_try - lam_done)[:, None], todo)
-            self._apply_increment(lam_try, start, end, todo)
+            self._start_increment(change * (lam_try - lam_done)[:, None], lam_try, start, end, todo)
             ok, fail_status, it, lin, res = self._newton(todo)
             newton_total += it
             linear_total += lin
@@ -1324,6 +1327,19 @@ class QuasiStaticSolver:
         self._unpack(self._q, self._positions, self._travel)
         return result
 
+    def _start_increment(self, change, lam, start, end, mask):
+        """Initial state of the masked problems' next increment: the predictor, then the loads. A predicted
+        state that inverts a Neo-Hookean element (infinite energy) falls back to the last converged one."""
+        self._predict(change, mask)
+        self._apply_increment(lam, start, end, mask)
+        if not self._barrier:
+            return
+        energy = self._energy_at(self._q, self._positions, self._travel, self._active_array(mask))
+        inverted = mask & ~np.isfinite(energy)
+        if inverted.any():
+            self._predict(change, mask & ~inverted)
+            self._apply_increment(lam, start, end, mask)
+
     def _predict(self, change: np.ndarray, mask: np.ndarray):
         """Initial guess of an increment: q = q_ref + r * (last converged increment of q), where r is the
         size of this load change relative to the last one (0 unless both changes are parallel)."""
@@ -1401,6 +1417,7 @@ class QuasiStaticSolver:
                 self._volume,
                 self._mu,
                 self._lam,
+                self._model,
                 N,
                 tet_stress,
                 energy,

@@ -528,6 +528,7 @@ def generate_object_shards(
     friction: float = 0.7,
     poisson_ratio: float = 0.3,
     density: float = 1000.0,
+    material_model: str = "neohookean",
     shard_count: int = 1,
     shard_index: int | None = None,
     seed: int = 0,
@@ -556,6 +557,9 @@ def generate_object_shards(
             ``source`` label it).
         out_dir: directory of the shards ``<object>__shard<i>of<n>.h5``.
         youngs_modulus: the K moduli [Pa] (all in every shard). poisson_ratio, density [kg/m^3]: shared.
+        material_model: constitutive energy (:class:`~defgraspnets.fem.Material`): "neohookean" (default;
+            no element can invert, so soft moduli converge at 15 N) or "corotated" (the thesis's FleX
+            model; soft objects invert and fail there, e.g. E = 1e4 Pa past 7 N on a 50 mm box).
         num_grasps: G antipodal grasps sampled on the object (``seed``), split over ``shard_count`` shards.
         steps: S ramp steps; ``max_force``: final total normal grasp force F_g [N].
         friction: Coulomb coefficient of the pads (and of the sampler's friction-cone test).
@@ -584,6 +588,8 @@ def generate_object_shards(
     moduli = _check_inputs(
         youngs_modulus, num_grasps, steps, max_force, friction, poisson_ratio, density, shard_count
     )
+    if material_model not in fem.MATERIAL_MODELS:
+        raise ValueError(f"material_model must be one of {fem.MATERIAL_MODELS}, got {material_model!r}")
     steps, num_grasps, shard_count = int(steps), int(num_grasps), int(shard_count)
     if shard_index is not None and not 0 <= shard_index < shard_count:
         raise ValueError(f"shard_index {shard_index} outside [0, {shard_count})")
@@ -611,7 +617,7 @@ def generate_object_shards(
     k = len(moduli)
     record = ObjectRecord(
         name, category, source, mesh.points, mesh.tets, mesh.surface_faces,
-        moduli, np.full(k, float(poisson_ratio)), np.full(k, float(density)),
+        moduli, np.full(k, float(poisson_ratio)), np.full(k, float(density)), material_model,
     )  # fmt: skip
     fingers = gripper_fingers(gripper)
     all_grasps = sample_antipodal_grasps(
@@ -651,7 +657,9 @@ def generate_object_shards(
 
                 bar = tqdm(total=len(todo), desc=f"{name} shard {i + 1}/{shard_count}", unit="E")
             for kk, gs in todo.items():
-                material = fem.Material(float(moduli[kk]), float(poisson_ratio), float(density))
+                material = fem.Material(
+                    float(moduli[kk]), float(poisson_ratio), float(density), model=material_model
+                )
                 res = _squeeze_modulus(
                     mesh, grasps[np.array(gs)], material, friction, max_force, steps, device,
                     solver_options, reject_inverted, progress,

@@ -69,6 +69,7 @@ def plan_grasps(
     fem_device=None,
     poisson_ratio: float = 0.3,
     density: float = 1000.0,
+    material_model: str = "neohookean",
     progress: bool = True,
 ) -> dict:
     """Run the planning pipeline (module docstring) and write its outputs to ``out_dir``; returns the
@@ -205,7 +206,7 @@ def plan_grasps(
         )
         sim = simulate_grasps(
             mesh, batch, planner.youngs_modulus, obj, planner.force, verify_steps, friction,
-            poisson_ratio, density, planner.gripper, device=fem_device, progress=progress,
+            poisson_ratio, density, planner.gripper, material_model, device=fem_device, progress=progress,
         )  # fmt: skip
         timings["verify_s"] = sim.seconds
         bounds = np.cumsum([0] + [len(g) for g in groups.values()])

@@ -73,6 +73,7 @@ def simulate_grasps(
     poisson_ratio: float = 0.3,
     density: float = 1000.0,
     gripper: ParallelJawGripper = FRANKA_HAND,
+    material_model: str = "neohookean",
     device=None,
     options: fem.SolverOptions | None = None,
     progress: bool = False,
@@ -80,12 +81,13 @@ def simulate_grasps(
     """Squeeze every grasp to ``force`` [N] in ``steps`` load steps (one batched FEM problem per grasp).
 
     A grasp whose ramp fails at any step (or inverts a tet) gets NaN fields and Q and ``converged`` False;
-    it is reported, never scored as if it had an answer.
+    it is reported, never scored as if it had an answer. ``material_model``: the FEM's constitutive energy,
+    as the checkpoint's training data (``datagen/grasps.py`` default: neohookean).
     """
     import time
 
     t0 = time.perf_counter()
-    material = fem.Material(youngs_modulus, poisson_ratio, density)
+    material = fem.Material(youngs_modulus, poisson_ratio, density, model=material_model)
     solver = make_squeeze_solver(
         mesh, grasps, material, friction, gripper, device=device, options=options or squeeze_solver_options()
     )
