@@ -15,8 +15,11 @@ from defgraspnets.tactile.closed_loops import (
     CNNWrenchEstimator,
     CorrectionGains,
     Fingertip,
+    check_estimator,
+    make_estimator,
     oracle_estimator,
     place_fingertip,
+    pose_correction_runs,
     pose_correction_step,
     read_fingertip,
     run_forearm_support,
@@ -90,6 +93,19 @@ def test_bad_input_rejected(sim):
         CNNWrenchEstimator.from_checkpoint(ROOT / "checkpoints" / "does_not_exist.ckpt")
 
 
+def test_estimator_choice_checked_before_simulation(tmp_path):
+    assert make_estimator("oracle", sim=None) is oracle_estimator  # no checkpoint needed
+    check_estimator("oracle", ckpt_path=tmp_path / "missing.ckpt", cnn_reference="bogus")
+    with pytest.raises(ValueError, match="estimator must be"):
+        check_estimator("kalman")
+    with pytest.raises(FileNotFoundError, match="checkpoint not found"):
+        check_estimator("cnn", tmp_path / "missing.ckpt")
+    ckpt = tmp_path / "present.ckpt"
+    ckpt.write_bytes(b"")
+    with pytest.raises(ValueError, match="cnn_reference"):
+        make_estimator("cnn", None, ckpt, cnn_reference="bogus")
+
+
 # ------------------------------------------------------------------ pose correction on the FEM sensor
 def test_out_of_reach_fingertip_reads_zero(sim):
     tip = Fingertip([0.0, 0.0, 0.5], [0.0, 0.0, -1.0])  # 0.3 m above the pole
@@ -128,6 +144,17 @@ def test_tilted_poke_turns_with_torque(sim):
     w = run.true_wrench[0]
     dp = run.poses[0, :3, :3].T @ (run.positions[1] - run.positions[0])
     assert w[:3] @ dp + w[3:] @ rot[1] > 0
+
+
+def test_pose_correction_runs_report_each_poke(sim):
+    pokes = {"axial": {"phi": 0.0, "contact_radius": 0.0, "theta": 0.0, "depth": 0.003}}
+    lines = []
+    runs, entries = pose_correction_runs(sim, pokes, steps=1, log=lines.append)
+    assert list(runs) == list(entries) == ["axial"]
+    entry = entries["axial"]
+    assert entry["poke"] == pokes["axial"] and entry["wall_time_s"] > 0
+    assert {k: v for k, v in entry.items() if k not in ("poke", "wall_time_s")} == runs["axial"].to_dict()
+    assert len(lines) == 1 and lines[0].startswith("axial: |F| [")
 
 
 # ------------------------------------------------------------------ forearm support (slow)

@@ -1,5 +1,10 @@
 """Closed-loop contour following on the calibrated fast membrane model (thesis ch. 4)."""
 
+import json
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -21,6 +26,7 @@ from defgraspnets.tactile.fast_membrane import (
 )
 from defgraspnets.tactile.sdf import SphereSDF, TubeSDF
 
+ROOT = Path(__file__).resolve().parents[1]
 GAINS = ContourParameters(tracking_step=0.01, force_gain=7.0e-4, alignment_gain=0.25, desired_force=3.0)
 
 
@@ -190,3 +196,18 @@ def test_fem_calibration_rejects_bad_settings():
         run_fem_calibration(max_depth=-0.01)
     with pytest.raises(ValueError):
         calibration_summary([])
+
+
+@pytest.mark.slow
+def test_script_writes_report_and_figures(tmp_path):
+    cmd = [
+        sys.executable, str(ROOT / "scripts" / "contour_following.py"), "scenes=[straight_pipe]",
+        "sensor.cap_divisions=8", "sensor.camera_scale=0.25", f"hydra.run.dir={tmp_path}",
+    ]  # fmt: skip
+    subprocess.run(cmd, check=True, cwd=tmp_path, capture_output=True, timeout=900)
+    report = json.loads((tmp_path / "contour_following.json").read_text())
+    assert list(report) == ["scenes", "force_proxy_correlation", "fast_model_calibration", "wall_time_s"]
+    assert list(report["scenes"]) == ["straight_pipe"]
+    assert report["force_proxy_correlation"]["samples"] > 0
+    for name in ("trajectories.png", "force_proxy.png"):
+        assert (tmp_path / name).stat().st_size > 1000

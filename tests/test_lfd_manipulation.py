@@ -1,5 +1,10 @@
 """Mixed-manipulation LfD (thesis §5.5): scenes, object motion, scripted teacher, 4-state HMM + GMRa."""
 
+import json
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -23,6 +28,7 @@ from defgraspnets.tactile.lfd.manipulation import (
 )
 from defgraspnets.tactile.pushing import Capsule, Rectangle
 
+ROOT = Path(__file__).resolve().parents[1]
 PALM = PalmGeometry(radius=0.0528, pole_height=0.183)  # the inflated dome of build_fast_simulation
 WORLD = ManipulationWorld()
 
@@ -170,3 +176,18 @@ def test_bad_input_is_rejected(teacher_runs):
         rollout_manipulation(sim, WORLD, PALM, policy, PRISM, np.zeros(3), np.eye(4), 0)
     with pytest.raises(ValueError):
         policy.action(np.zeros(6))  # the policy takes the 9-D input
+
+
+@pytest.mark.slow
+def test_script_writes_report_and_figure(tmp_path):
+    cmd = [
+        sys.executable, str(ROOT / "scripts" / "lfd_mixed_manipulation.py"), "n_demonstrations=1",
+        "n_rollouts=2", "rollout_steps=5", "sensor.cap_divisions=8", "sensor.camera_scale=0.25",
+        f"hydra.run.dir={tmp_path}",
+    ]  # fmt: skip
+    subprocess.run(cmd, check=True, cwd=tmp_path, capture_output=True, timeout=900)
+    report = json.loads((tmp_path / "lfd_mixed_manipulation.json").read_text())
+    assert report["n_demonstrations"] == 2 and report["trials"] == 2
+    assert len(report["teacher_outcomes"]) == 2 and len(report["rollouts"]) == 2
+    assert "wall_time_s" in report
+    assert (tmp_path / "lfd_mixed_manipulation.png").stat().st_size > 1000

@@ -34,8 +34,10 @@ The wrench estimator is pluggable: :func:`oracle_estimator` (the simulator's own
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -52,13 +54,18 @@ from defgraspnets.tactile.indenters import (
 from defgraspnets.tactile.sensor import Indentation, MembraneSimulator, TactileReading
 
 __all__ = [
+    "ESTIMATORS",
     "CNNWrenchEstimator",
     "ClosedLoopRun",
     "CorrectionGains",
     "Fingertip",
+    "check_estimator",
     "forearm_rest_indentation",
+    "forearm_support_runs",
+    "make_estimator",
     "oracle_estimator",
     "place_fingertip",
+    "pose_correction_runs",
     "pose_correction_step",
     "read_fingertip",
     "run_forearm_support",
@@ -143,8 +150,6 @@ class CNNWrenchEstimator:
     @classmethod
     def from_checkpoint(cls, path, reference=None, map_location="cpu") -> CNNWrenchEstimator:
         """Load ``path`` (FileNotFoundError with the path if it is missing)."""
-        from pathlib import Path
-
         from defgraspnets.models.wrench_module import WrenchRegressionModule
 
         path = Path(path)
@@ -163,6 +168,39 @@ class CNNWrenchEstimator:
         with torch.no_grad():
             w = self.module.predict_wrench(reading.depth.depth, reference=self.reference)
         return np.asarray(w, dtype=np.float64).reshape(6)
+
+
+#: the wrench estimators :func:`make_estimator` builds
+ESTIMATORS = ("oracle", "cnn")
+
+
+def check_estimator(kind: str, ckpt_path=None, cnn_reference: str = "checkpoint") -> None:
+    """Check an estimator choice before any simulation: ``kind`` one of :data:`ESTIMATORS` (ValueError);
+    for ``"cnn"`` the checkpoint ``ckpt_path`` must exist (FileNotFoundError naming it) and
+    ``cnn_reference`` be ``"checkpoint"`` or ``"simulator"`` (ValueError)."""
+    if kind not in ESTIMATORS:
+        raise ValueError(f"estimator must be 'oracle' or 'cnn', got {kind!r}")
+    if kind != "cnn":
+        return
+    if ckpt_path is None or not Path(ckpt_path).is_file():
+        raise FileNotFoundError(
+            f"wrench CNN checkpoint not found: {ckpt_path} (train it first, or run estimator=oracle)"
+        )
+    if cnn_reference not in ("checkpoint", "simulator"):
+        raise ValueError(f"cnn_reference must be 'checkpoint' or 'simulator', got {cnn_reference!r}")
+
+
+def make_estimator(
+    kind: str, sim: MembraneSimulator, ckpt_path=None, cnn_reference: str = "checkpoint"
+) -> WrenchEstimator:
+    """The wrench estimator ``kind`` (checked by :func:`check_estimator`) for ``sim``: the oracle, or the
+    CNN of ``ckpt_path`` comparing against the checkpoint's undeformed image (``cnn_reference=
+    "checkpoint"``) or ``sim``'s own (``"simulator"``)."""
+    check_estimator(kind, ckpt_path, cnn_reference)
+    if kind == "oracle":
+        return oracle_estimator
+    reference = sim.reference_depth().depth if cnn_reference == "simulator" else None
+    return CNNWrenchEstimator.from_checkpoint(ckpt_path, reference=reference)
 
 
 # ------------------------------------------------------------------------------ records
@@ -478,3 +516,76 @@ def run_forearm_support(
         ],
     )
     return run
+
+
+# ------------------------------------------------------------------------------ experiments
+def pose_correction_runs(
+    sim: MembraneSimulator,
+    pokes: Mapping[str, Mapping],
+    estimator: WrenchEstimator = oracle_estimator,
+    steps: int = 5,
+    gains: CorrectionGains = CorrectionGains(),
+    log: Callable[[str], None] | None = print,
+) -> tuple[dict[str, ClosedLoopRun], dict[str, dict]]:
+    """Pose correction (:func:`run_pose_correction`, ``steps`` steps) against the fingertip of each named
+    poke (keyword arguments of :class:`~defgraspnets.tactile.indenters.PokeCommand`, placed by
+    :func:`place_fingertip` on the sensor at the identity).
+
+    Returns:
+        the runs by name, and their JSON-ready entries: ``poke``, :meth:`ClosedLoopRun.to_dict`,
+        ``wall_time_s``. ``log`` gets one line per run (None: quiet).
+    """
+    runs, entries = {}, {}
+    for name, poke in pokes.items():
+        t = time.perf_counter()
+        poke = dict(poke)
+        tip = place_fingertip(sim, PokeCommand(**poke))
+        runs[name] = run = run_pose_correction(sim, tip, estimator, steps=steps, gains=gains)
+        entries[name] = {"poke": poke, **run.to_dict(), "wall_time_s": time.perf_counter() - t}
+        if log is not None:
+            log(
+                f"{name}: |F| {np.round(run.force_magnitude, 3).tolist()} N, displacement along push "
+                f"{np.round(run.displacement @ run.push_direction, 5).tolist()} m, "
+                f"rotation {np.round(run.rotation[-1], 4).tolist()} rad"
+            )
+    return runs, entries
+
+
+def forearm_support_runs(
+    arm: MembraneSimulator,
+    steps: int = 3,
+    shear_per_step: Sequence[float] = (0.0, 0.002, 0.0),
+    twist_per_step: float = 0.05,
+    depth: float = 0.004,
+    estimator: WrenchEstimator = oracle_estimator,
+    gains: CorrectionGains = CorrectionGains(),
+    log: Callable[[str], None] | None = print,
+) -> tuple[dict[str, ClosedLoopRun], dict[str, dict]]:
+    """Forearm support (:func:`run_forearm_support`, rest press ``depth`` [m]) twice, ``steps`` steps each:
+    ``forearm_shear`` (the arm sheared by ``shear_per_step`` [m] per step) and ``forearm_twist`` (turned
+    by ``twist_per_step`` [rad] per step about the world z axis).
+
+    Returns:
+        the runs by name, and their JSON-ready entries (:meth:`ClosedLoopRun.to_dict`, ``wall_time_s``).
+        ``log`` gets one line per run (None: quiet).
+    """
+    runs, entries = {}, {}
+    for name, shear, twist in [
+        ("forearm_shear", shear_per_step, 0.0),
+        ("forearm_twist", [0.0, 0.0, 0.0], twist_per_step),
+    ]:
+        t = time.perf_counter()
+        runs[name] = run = run_forearm_support(
+            arm,
+            shear_twist_schedule(steps, list(shear), float(twist)),
+            depth=depth,
+            estimator=estimator,
+            gains=gains,
+        )
+        entries[name] = {**run.to_dict(), "wall_time_s": time.perf_counter() - t}
+        if log is not None:
+            log(
+                f"{name}: sensor displacement {np.round(run.displacement[-1], 5).tolist()} m, "
+                f"rotation {np.round(run.rotation[-1], 4).tolist()} rad"
+            )
+    return runs, entries

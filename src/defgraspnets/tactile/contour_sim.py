@@ -40,6 +40,8 @@ Scenes (:func:`standard_scenes`, world frame, metres):
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -58,9 +60,12 @@ from defgraspnets.tactile.sdf import BoxSDF, BumpyCylinderSDF, SignedDistance, T
 __all__ = [
     "ContourRun",
     "ContourScene",
+    "ContourStudy",
     "Observation",
     "TactileSimulation",
     "build_fast_simulation",
+    "contour_following_study",
+    "force_proxy_correlation",
     "pearson_r",
     "pole_height",
     "pole_positions",
@@ -512,3 +517,75 @@ def run_report(run: ContourRun, desired_force: float, scene: ContourScene | None
         "housing_contact_steps": m.housing_contact_steps,
         "stopped_early": run.stopped_early,
     }
+
+
+def force_proxy_correlation(runs: Iterable[ContourRun], calibration=None) -> dict:
+    """``F~`` (eq. 4.6) [m] against the true contact force [N] over all in-contact steps of ``runs`` (the
+    Fig. 4.4 analogue): Pearson r, the sample count, the least-squares line ``force = a F~ + b`` (``a`` in
+    N/m, ``b`` in N) and the FEM correlation recorded in the fast model's ``calibration`` (None without one).
+    """
+    runs = list(runs)
+    proxy = np.concatenate([r.depth_proxy[r.in_contact] for r in runs])
+    force = np.concatenate([r.normal_force[r.in_contact] for r in runs])
+    r = pearson_r(proxy, force)  # ValueError below two in-contact samples
+    slope, intercept = np.polyfit(proxy, force, 1)
+    return {
+        "pearson_r": r,
+        "samples": int(proxy.size),
+        "fit_N_per_m": float(slope),
+        "fit_intercept_N": float(intercept),
+        "fem_pearson_r": None
+        if calibration is None
+        else calibration.provenance.get("fem_pearson_r_force_vs_contact_depth_proxy"),
+    }
+
+
+@dataclass(frozen=True)
+class ContourStudy:
+    """The runs of :func:`contour_following_study` and their JSON-ready report.
+
+    Attributes:
+        scenes: the scenes run, by name (:func:`standard_scenes`).
+        runs: their :class:`ContourRun`, by name.
+        height: the sensor's pole height [m] (:func:`pole_height`).
+        report: ``scenes`` (per scene :func:`run_report` plus ``wall_time_s``), ``force_proxy_correlation``
+            (:func:`force_proxy_correlation`) and ``fast_model_calibration`` (the model's calibration).
+    """
+
+    scenes: dict[str, ContourScene]
+    runs: dict[str, ContourRun]
+    height: float
+    report: dict
+
+
+def contour_following_study(
+    sim: TactileSimulation,
+    scene_names: Sequence[str],
+    params: ContourParameters,
+    max_displacement: float = 0.03,
+    log: Callable[[str], None] | None = print,
+) -> ContourStudy:
+    """Contour following (:func:`run_contour_following`) on each named scene of :func:`standard_scenes`
+    with the gains of ``params``; ``log`` gets one line per scene (None: quiet)."""
+    height = pole_height(sim)
+    scenes = standard_scenes(height)
+    unknown = sorted(set(scene_names) - set(scenes))
+    if unknown:
+        raise ValueError(f"unknown scenes {unknown}; choose from {sorted(scenes)}")
+    runs, entries = {}, {}
+    for name in scene_names:
+        t = time.perf_counter()
+        runs[name] = run = run_contour_following(sim, scenes[name], params, max_displacement=max_displacement)
+        entries[name] = {
+            **run_report(run, params.desired_force, scenes[name], height),
+            "wall_time_s": time.perf_counter() - t,
+        }
+        if log is not None:
+            log(f"{name}: {entries[name]}")
+    calibration = sim.model.calibration
+    report = {
+        "scenes": entries,
+        "force_proxy_correlation": force_proxy_correlation(runs.values(), calibration),
+        "fast_model_calibration": calibration.to_dict(),
+    }
+    return ContourStudy({name: scenes[name] for name in runs}, runs, height, report)
