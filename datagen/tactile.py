@@ -2,8 +2,10 @@
 
     python datagen/tactile.py                                  # small poking set (CPU, minutes)
     python datagen/tactile.py dataset=forearm                  # small forearm shear / twist set
-    python datagen/tactile.py -m dataset=poke,forearm stride=1 limit=null membrane.cap_divisions=16 \
-        indenter.radius=0.005 batch_size=16 device=cuda        # the thesis grids
+    python datagen/tactile.py stride=1 limit=null membrane.cap_divisions=16 \
+        indenter.radius=0.005 batch_size=16 device=cuda        # the thesis poking grid
+    python datagen/tactile.py dataset=forearm repeats=5 stride=1 limit=null \
+        membrane.cap_divisions=16                              # the thesis forearm grid + 4 repeats
 
 Config: configs/datagen/tactile.yaml. All logic lives in :mod:`defgraspnets.tactile.datasets`; a
 re-run resumes an unfinished shard and leaves a finished one alone.
@@ -57,6 +59,8 @@ def main(cfg: DictConfig) -> None:
         store_points=cfg.store_points,
         config_text=OmegaConf.to_yaml(cfg, resolve=True),
         progress=cfg.progress,
+        repeats=cfg.repeats,
+        perturbation=OmegaConf.to_container(cfg.perturbation, resolve=True),
     )
     if counts["skipped"] < 0:
         log.info("%s is already finished (delete it to regenerate)", counts["path"])

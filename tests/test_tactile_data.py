@@ -1,5 +1,7 @@
 """Tactile HDF5 schema (round trip, atomic resumable writes, validation) and the wrench datamodule."""
 
+import json
+
 import h5py
 import numpy as np
 import pytest
@@ -179,6 +181,55 @@ def test_writer_rejects_inconsistent_batches(tmp_path):
         writer.append(far)
     with pytest.raises(TactileSchemaError, match="points given"):
         writer.append(samples([0], points=True))
+
+
+def _to_version_1(f):
+    """Rewrite a file (or part) as schema version 1 wrote it: params without the perturbation columns."""
+    for g in (f, f.get("failures")):
+        if g is not None and "params" in g:
+            old = g["params"][()][:, :7]
+            del g["params"]
+            g["params"] = old
+    if "schema_version" in f.attrs:
+        f.attrs["schema_version"] = 1
+        f.attrs["param_names"] = json.dumps(PARAM_NAMES[:7])
+
+
+def test_version_1_shards_and_unfinished_runs_still_load(tmp_path):
+    path = tmp_path / "forearm_old.h5"
+    writer = TactileShardWriter(path, references(), "forearm")
+    old = samples(np.arange(3))
+    writer.append(old)
+    writer.record_failures(TactileFailures([3], np.ones((1, len(PARAM_NAMES))), ["diverged"]))
+    legacy = TactileSamples(**{**_fields(old), "params": old.params[:, :7]})  # 7-column code still works
+    assert legacy.params.shape == (3, 13) and np.isnan(legacy.params[:, 7:]).all()
+    parts = tmp_path / "forearm_old.h5.parts"
+    for part in parts.glob("*.h5"):
+        with h5py.File(part, "r+") as f:
+            _to_version_1(f)
+    # a version 2 writer resumes the version 1 run and adds a perturbed repeat
+    resumed = TactileShardWriter(path, references(), "forearm")
+    assert resumed.completed_sample_ids == {0, 1, 2, 3}
+    new = samples([1962], seed=1)
+    new.params[:, 7:] = [1.0, 0.001, -0.002, 0.03, 1.02, -0.05]
+    resumed.append(new)
+    resumed.finalize()
+    for version in (2, 1):  # the merged shard, then the same shard as a finished version 1 file
+        shard = read_tactile_shard(path)
+        s = shard.samples
+        assert s.params.shape == (4, len(PARAM_NAMES)) == (4, 13)
+        np.testing.assert_array_equal(s.params[:3, :7], old.params[:, :7])
+        assert np.isnan(s.params[:3, 7:]).all()  # not recorded in version 1
+        if version == 2:
+            assert shard.attrs["schema_version"] == SCHEMA_VERSION == 2
+            np.testing.assert_array_equal(s.params[3], new.params[0])
+        else:
+            assert shard.attrs["schema_version"] == 1 and np.isnan(s.params[3, 7:]).all()
+        assert shard.failures.params.shape == (1, 13)
+        np.testing.assert_array_equal(shard.failures.params[0, :7], 1.0)
+        assert np.isnan(shard.failures.params[0, 7:]).all()
+        with h5py.File(path, "r+") as f:
+            _to_version_1(f)
 
 
 def test_reader_rejects_foreign_and_outdated_files(tmp_path):

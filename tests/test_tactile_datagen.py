@@ -2,10 +2,19 @@
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
-from defgraspnets.data.tactile_schema import TactileShardWriter, read_tactile_shard
+from defgraspnets.data.tactile_schema import (
+    COMMAND_PARAM_NAMES,
+    PARAM_NAMES,
+    PERTURBATION_PARAM_NAMES,
+    TactileShardWriter,
+    read_tactile_shard,
+)
 from defgraspnets.tactile.camera import PICO_FLEXX
 from defgraspnets.tactile.datasets import (
+    ForearmPerturbation,
+    TactilePath,
     forearm_paths,
     generate_tactile_dataset,
     generate_tactile_shard,
@@ -130,3 +139,235 @@ def test_bad_experiment_and_indenter_are_named(sensor, tmp_path):
     with pytest.raises(IndenterError, match="capsule"):
         generate_tactile_dataset("forearm", tmp_path / "x.h5", sensor, FINGERTIP, 1500.0)
     assert not (tmp_path / "x.h5").exists()
+
+
+# --------------------------------------------------------------------------- forearm repeats
+FOREARM = CapsuleIndenter(radius=0.04, length=0.2)
+PERTURB = ForearmPerturbation(
+    offset_x=0.004, offset_y=0.003, yaw=0.05, radius_spread=0.1, friction_spread=0.2, seed=7
+)
+P = {n: i for i, n in enumerate(PARAM_NAMES)}
+NOMINAL = [0.0, 0.0, 0.0, 0.0, 1.0, 0.0]  # repeat, offset_x, offset_y, yaw, radius_scale, friction_offset
+
+
+@pytest.fixture(scope="module")
+def small_sensor():
+    return build_membrane(cap_divisions=4, layers=2)
+
+
+def _perturbation_of(path: TactilePath) -> np.ndarray:
+    rows = path.params[:, len(COMMAND_PARAM_NAMES) :]
+    assert np.all(rows == rows[0])  # one placement for all readings of a path
+    return rows[0]
+
+
+def test_one_repeat_gives_exactly_the_nominal_forearm_paths(small_sensor):
+    grid = forearm_grid()
+    top = small_sensor.dimensions.outer_pole + np.array([0.0, 0.0, FOREARM.radius + 0.01])
+    for paths in (
+        forearm_paths(dict(enumerate(grid)), FOREARM, small_sensor),
+        forearm_paths(dict(enumerate(grid)), FOREARM, small_sensor, 3, PERTURB, len(grid))[:378],
+    ):
+        assert len(paths) == 378
+        assert sorted(np.concatenate([p.ids for p in paths]).tolist()) == list(range(len(grid)))
+        for p in paths:
+            # the forearm as before repeats existed: above the pole, along x, unscaled, nominal friction
+            np.testing.assert_array_equal(p.indentation.pose.position, top)
+            np.testing.assert_array_equal(p.indentation.pose.quaternion, [0.0, 0.0, 0.0, 1.0])
+            assert p.indentation.direction == (0.0, 0.0, -1.0) and p.radius_scale == 1.0
+            assert p.friction_offset == 0.0
+            for i, row, motion in zip(p.ids, p.params, p.motions):
+                c = grid[i]
+                command = [np.nan, np.nan, np.nan, c.depth, c.shear_direction, c.shear_distance, c.twist]
+                np.testing.assert_array_equal(row[: len(COMMAND_PARAM_NAMES)], command)
+                np.testing.assert_array_equal(row[len(COMMAND_PARAM_NAMES) :], NOMINAL)
+                assert c.depth == p.indentation.depth
+                R = Rotation.from_rotvec([0.0, 0.0, -c.twist]).as_matrix()
+                np.testing.assert_array_equal(motion[:3, :3], R)
+    assert len(PARAM_NAMES) == len(COMMAND_PARAM_NAMES) + len(PERTURBATION_PARAM_NAMES) == 13
+
+
+def test_repeats_are_perturbed_deterministically_within_bounds(small_sensor):
+    grid = forearm_grid()
+    n = len(grid)
+    commands = dict(enumerate(grid))
+    paths = forearm_paths(commands, FOREARM, small_sensor, 3, PERTURB, n)
+    assert len(paths) == 3 * 378
+    ids = np.concatenate([p.ids for p in paths])
+    assert sorted(ids.tolist()) == list(range(3 * n))  # repeat k of state i is i + k n
+    again = forearm_paths(commands, FOREARM, small_sensor, 3, PERTURB, n)
+    nominal = {int(p.ids.min()): p for p in paths[:378]}
+    draws = {1: [], 2: []}
+    for p, q in zip(paths, again):
+        np.testing.assert_array_equal(p.params, q.params)
+        np.testing.assert_array_equal(p.indentation.pose.to_array(), q.indentation.pose.to_array())
+        k = int(p.ids.min()) // n
+        base = nominal[int(p.ids.min()) - k * n]
+        d = _perturbation_of(p)
+        assert d[0] == k
+        if k == 0:
+            continue
+        draws[k].append(d)
+        # same command and motions as its nominal path, a different forearm placement
+        np.testing.assert_array_equal(p.ids, base.ids + k * n)
+        np.testing.assert_array_equal(p.params[:, :7], base.params[:, :7])
+        np.testing.assert_array_equal(p.motions, base.motions)
+        assert np.all(d[1:] != np.array(NOMINAL[1:]))
+        # the stored perturbation is the simulated one
+        r = FOREARM.radius * d[4]
+        top = small_sensor.dimensions.outer_pole + [d[1], d[2], r + 0.01]
+        np.testing.assert_allclose(p.indentation.pose.position, top, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(p.indentation.pose.rotation.as_rotvec(), [0, 0, d[3]], atol=1e-12)
+        assert p.radius_scale == d[4] and p.friction_offset == d[5]
+    for rows in draws.values():
+        d = np.array(rows)
+        bounds = [
+            PERTURB.offset_x,
+            PERTURB.offset_y,
+            PERTURB.yaw,
+            PERTURB.radius_spread,
+            PERTURB.friction_spread,
+        ]
+        assert np.all(np.abs(d[:, 1:] - NOMINAL[1:]) <= bounds)
+        # every path draws its own placement, spread over the range, not one per repeat
+        assert len(np.unique(d[:, 1])) == 378
+        assert np.all(np.abs(d[:, 1:] - NOMINAL[1:]).max(axis=0) > 0.9 * np.array(bounds))
+    assert not np.array_equal(np.array(draws[1]), np.array(draws[2]))
+    # another seed, another placement; zero magnitudes: the repeat is the nominal path
+    other = forearm_paths(commands, FOREARM, small_sensor, 2, {**vars(PERTURB), "seed": 8}, n)
+    assert _perturbation_of(other[400])[1] != _perturbation_of(paths[400])[1]
+    zero = ForearmPerturbation(offset_x=0, offset_y=0, yaw=0, radius_spread=0, friction_spread=0)
+    same = forearm_paths(commands, FOREARM, small_sensor, 2, zero, n)
+    a, b = same[400].indentation, same[400 - 378].indentation
+    np.testing.assert_array_equal(a.pose.to_array(), b.pose.to_array())
+    assert a.depth == b.depth and same[400].radius_scale == 1.0 and same[400].friction_offset == 0
+
+
+def test_repeat_perturbations_do_not_depend_on_sharding_or_subsets(small_sensor):
+    grid = forearm_grid()
+    commands = dict(enumerate(grid))
+    paths = forearm_paths(commands, FOREARM, small_sensor, 5, PERTURB, len(grid))
+    assert len(paths) == 5 * 378
+    by_id = {int(p.ids[0]): p for p in paths}
+
+    def same(p):
+        q = by_id[int(p.ids[0])]
+        np.testing.assert_array_equal(p.ids, q.ids)
+        np.testing.assert_array_equal(p.params, q.params, strict=True)
+        np.testing.assert_array_equal(p.indentation.pose.to_array(), q.indentation.pose.to_array())
+        assert (p.radius_scale, p.friction_offset) == (q.radius_scale, q.friction_offset)
+
+    for stride, limit, count in ((1, None, 7), (3, 200, 4), (97, 8, 3)):
+        shards = [select_paths(paths, stride, limit, k, count) for k in range(count)]
+        chosen = select_paths(paths, stride, limit)
+        assert sorted(int(p.ids[0]) for s in shards for p in s) == sorted(int(p.ids[0]) for p in chosen)
+        for shard in shards:
+            for p in shard:
+                same(p)
+    # the thesis scale reaches the perturbed repeats in every shard
+    for k in range(16):
+        assert max(int(p.ids[0]) for p in select_paths(paths, 1, None, k, 16)) >= 4 * len(grid)
+    # a subset of the commands (some paths only) draws the same placements for those paths
+    subset = {i: c for i, c in commands.items() if c.depth == 0.005 and c.twist <= 0}
+    for p in forearm_paths(subset, FOREARM, small_sensor, 5, PERTURB, len(grid)):
+        same(p)
+
+
+def test_bad_repeat_config_raises_naming_the_key(sensor, tmp_path):
+    bad = (
+        ({"offset_x": -0.001}, "perturbation.offset_x"),
+        ({"offset_y": float("nan")}, "perturbation.offset_y"),
+        ({"yaw": -0.1}, "perturbation.yaw"),
+        ({"radius_spread": 1.0}, "perturbation.radius_spread"),
+        ({"radius_spread": -0.1}, "perturbation.radius_spread"),
+        ({"friction_spread": float("inf")}, "perturbation.friction_spread"),
+        ({"friction_spread": "0.1"}, "perturbation.friction_spread"),
+        ({"seed": -1}, "perturbation.seed"),
+        ({"seed": 0.5}, "perturbation.seed"),
+        ({"offset": 0.01}, "unknown perturbation keys"),
+    )
+    for values, key in bad:
+        with pytest.raises(ValueError, match=key):
+            ForearmPerturbation.from_mapping(values)
+    grid = dict(enumerate(forearm_grid()))
+    for repeats in (0, -2, 1.5, True):
+        with pytest.raises(ValueError, match="repeats"):
+            forearm_paths(grid, FOREARM, sensor, repeats=repeats)
+    with pytest.raises(ValueError, match="grid_size"):
+        forearm_paths(grid, FOREARM, sensor, 2, grid_size=10)
+    out = tmp_path / "x.h5"
+    kwargs = dict(closed=True, intrinsics=CAMERA, progress=False)
+    with pytest.raises(ValueError, match="repeats"):
+        generate_tactile_dataset("forearm", out, sensor, FOREARM, 1500.0, repeats=0, **kwargs)
+    with pytest.raises(ValueError, match="repeats must be 1 for the poke"):
+        generate_tactile_dataset(
+            "poke", out, sensor, SphereIndenter(radius=0.01), 1500.0, repeats=5, **kwargs
+        )
+    with pytest.raises(ValueError, match="perturbation.friction_spread"):
+        generate_tactile_dataset("forearm", out, sensor, FOREARM, 1500.0, friction=0.05, repeats=2, **kwargs)
+    with pytest.raises(ValueError, match="perturbation.yaw"):
+        generate_tactile_dataset(
+            "forearm", out, sensor, FOREARM, 1500.0, repeats=2, perturbation={"yaw": -1.0}, **kwargs
+        )
+    assert not out.exists() and not (tmp_path / "x.h5.parts").exists()
+
+
+def test_config_perturbation_block_is_valid():
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    root = Path(__file__).resolve().parents[1]
+    with initialize_config_dir(config_dir=str(root / "configs"), version_base="1.3"):
+        cfg = compose(config_name="datagen/tactile", overrides=[f"paths.root_dir={root}"])
+        thesis = compose(config_name="datagen/tactile", overrides=["repeats=5", "perturbation.seed=3"])
+    assert cfg.repeats == 1
+    p = ForearmPerturbation.from_mapping(OmegaConf.to_container(cfg.perturbation))
+    assert p == ForearmPerturbation()  # the documented defaults are the config's
+    assert thesis.repeats == 5 and ForearmPerturbation.from_mapping(thesis.perturbation).seed == 3
+
+
+def test_perturbed_forearm_repeat_round_trip(small_sensor, tmp_path):
+    """One tiny solve (coarsest membrane): the first reading (3 mm shear along +x) of a perturbed 5 mm
+    press. Off the symmetric nominal placement the cap-8 membrane solves ~3x slower (~25 s here)."""
+    sensor = small_sensor
+    grid = forearm_grid()
+    n = len(grid)
+    friction = 0.5
+    perturbation = ForearmPerturbation(
+        offset_x=0.004, offset_y=0.004, yaw=0.1, radius_spread=0.1, friction_spread=0.3, seed=11
+    )
+    paths = forearm_paths(dict(enumerate(grid)), FOREARM, sensor, 2, perturbation, n)
+    full = next(p for p in paths[378:] if p.params[0, 3] == 0.005 and p.params[0, 4] == np.pi)
+    d = _perturbation_of(full)
+    assert d[0] == 1 and d[4] != 1.0 and d[5] < 0  # this seed: a scaled radius, lower friction
+    path = TactilePath(
+        full.indentation,
+        full.ids[:1],
+        full.params[:1],
+        motions=full.motions[:1],
+        radius_scale=full.radius_scale,
+        friction_offset=full.friction_offset,
+    )
+    sim = make_simulator(sensor, FOREARM, 1500.0, closed=True, friction=friction, intrinsics=CAMERA)
+    out = tmp_path / "forearm_repeat.h5"
+    writer = TactileShardWriter(out, sensor_references(sim), "forearm")
+    counts = generate_tactile_shard(sim, [path], writer, progress=False)
+    assert counts == {"samples": 1, "failed": 0, "skipped": 0, "paths": 1}
+    assert np.all(sim.solver._friction == friction)  # the shared simulator's friction is restored
+    writer.finalize()
+    s = read_tactile_shard(out).samples
+    np.testing.assert_array_equal(s.sample_id, full.ids[:1])
+    assert s.sample_id[0] >= n
+    np.testing.assert_array_equal(s.params, full.params[:1])  # the perturbation is stored per reading
+    # the stored forearm pose: re-placed by (offset_x, offset_y), yawed, moved 3 mm along +x by the shear
+    np.testing.assert_allclose(s.indenter_pose[0, :2], [d[1] + 0.003, d[2]], atol=1e-9)
+    np.testing.assert_allclose(
+        Rotation.from_quat(s.indenter_pose[0, 3:]).as_rotvec(), [0, 0, d[3]], atol=1e-9
+    )
+    f = s.wrench[0, :3]
+    assert f[2] < 0 and f[0] > 0
+    # friction drags the sensor along +x; the forearm slips, at the perturbed coefficient (not 0.5)
+    mu = friction + d[5]
+    assert 0.9 * mu * -f[2] < f[0] <= mu * -f[2] * (1 + 1e-3)

@@ -15,10 +15,16 @@ One file per dataset shard. Layout (N samples, H x W images, K reference images)
     indenter_kind    (N,) str        "sphere" | "capsule" | "box" | "ring"
     pv_state         (N, 2) float64  pre-contact gas state (absolute pressure [Pa], volume [m^3])
     reference_index  (N,) int64      row of references/ holding this sample's undeformed image
-    params           (N, 7) float64  experiment parameters, NaN where not applicable, columns
+    params           (N, 13) float64  experiment parameters, NaN where not applicable, columns
                      PARAM_NAMES = phi, contact_radius, theta, depth, shear_direction,
-                     shear_distance, twist  [rad, m]
-    sample_id        (N,) int64      unique id (index in the experiment grid; resuming skips ids)
+                     shear_distance, twist  [rad, m] (the command), then the perturbation of
+                     the repeated forearm experiment (:mod:`defgraspnets.tactile.datasets`):
+                     repeat (0 = the nominal grid), offset_x, offset_y [m] (forearm placement
+                     along the sensor x, y axes), yaw [rad] (about the sensor z axis),
+                     radius_scale (forearm radius / nominal), friction_offset (Coulomb
+                     coefficient - nominal); NaN for experiments without repeats (poke)
+    sample_id        (N,) int64      unique id (index in the experiment grid, + repeat x grid size
+                     for repeats; resuming skips ids)
     references/depth (K, H, W) float32, references/pv_state (K, 2), references/label (K,)
     failures/sample_id, failures/params, failures/reason   solves that failed (never data)
 
@@ -28,6 +34,10 @@ file ``<shard>.parts/part-XXXXXX.h5`` (written to a temporary name, fsynced, the
 leaves only complete parts (stale temporaries are removed on resume), so it never corrupts; a new
 writer on the same path resumes and reports :attr:`TactileShardWriter.completed_sample_ids`. One
 writer per shard at a time.
+
+Versions: 2 added the six perturbation columns of ``params``. Version 1 files (and unfinished version
+1 runs) still load: their 7-column ``params`` (here and under ``failures/``) read with the new columns
+NaN (not recorded); in-memory batches given 7-column params are widened the same way.
 """
 
 from __future__ import annotations
@@ -45,9 +55,12 @@ import h5py
 import numpy as np
 
 __all__ = [
+    "COMMAND_PARAM_NAMES",
     "PARAM_NAMES",
+    "PERTURBATION_PARAM_NAMES",
     "SCHEMA_NAME",
     "SCHEMA_VERSION",
+    "SUPPORTED_SCHEMA_VERSIONS",
     "WRENCH_COMPONENTS",
     "TactileFailures",
     "TactileReferences",
@@ -59,9 +72,22 @@ __all__ = [
 ]
 
 SCHEMA_NAME = "defgraspnets.tactile"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+#: versions :func:`read_tactile_shard` reads (older ones are widened to the current layout)
+SUPPORTED_SCHEMA_VERSIONS = (1, 2)
 WRENCH_COMPONENTS = ("force_x", "force_y", "force_z", "torque_x", "torque_y", "torque_z")
-PARAM_NAMES = ("phi", "contact_radius", "theta", "depth", "shear_direction", "shear_distance", "twist")
+#: the command's parameters (schema version 1's columns), then the perturbation of a repeat (version 2)
+COMMAND_PARAM_NAMES = (
+    "phi",
+    "contact_radius",
+    "theta",
+    "depth",
+    "shear_direction",
+    "shear_distance",
+    "twist",
+)
+PERTURBATION_PARAM_NAMES = ("repeat", "offset_x", "offset_y", "yaw", "radius_scale", "friction_offset")
+PARAM_NAMES = COMMAND_PARAM_NAMES + PERTURBATION_PARAM_NAMES
 UNITS = {
     "depth": "m",
     "points": "m",
@@ -69,7 +95,7 @@ UNITS = {
     "indenter_pose": "m, unit quaternion xyzw",
     "pv_state": "Pa (absolute), m^3",
     "params": "phi rad, contact_radius m, theta rad, depth m, shear_direction rad, shear_distance m, "
-    "twist rad",
+    "twist rad, repeat 1, offset_x m, offset_y m, yaw rad, radius_scale 1, friction_offset 1",
 }
 _STR = h5py.string_dtype()
 _REQUIRED_ATTRS = ("generator_version", "experiment", "config_yaml", "created", "image_height", "image_width")
@@ -85,6 +111,14 @@ def _as(array, dtype, shape, name, where) -> np.ndarray:
     if a.shape != shape:
         raise TactileSchemaError(f"{where}: {name} must have shape {shape}, got {a.shape}")
     return np.ascontiguousarray(a.astype(dtype, copy=False))
+
+
+def _widen_params(params) -> np.ndarray:
+    """Version 1 params (N, 7: the command only) -> the current (N, 13) layout, perturbation NaN."""
+    a = np.asarray(params)
+    if a.ndim == 2 and a.shape[1] == len(COMMAND_PARAM_NAMES):
+        a = np.concatenate([a, np.full((len(a), len(PERTURBATION_PARAM_NAMES)), np.nan)], axis=1)
+    return a
 
 
 def _strings(values) -> np.ndarray:
@@ -124,7 +158,7 @@ class TactileSamples:
             )
         self.pv_state = _as(self.pv_state, np.float64, (n, 2), "pv_state", w)
         self.reference_index = _as(self.reference_index, np.int64, (n,), "reference_index", w)
-        self.params = _as(self.params, np.float64, (n, len(PARAM_NAMES)), "params", w)
+        self.params = _as(_widen_params(self.params), np.float64, (n, len(PARAM_NAMES)), "params", w)
         self.sample_id = _as(self.sample_id, np.int64, (n,), "sample_id", w)
         if self.points is not None:
             self.points = _as(self.points, np.float32, (n, h, wid, 3), "points", w)
@@ -233,7 +267,8 @@ class TactileFailures:
     def __post_init__(self):
         self.sample_id = np.asarray(self.sample_id, dtype=np.int64).ravel()
         n = len(self.sample_id)
-        self.params = _as(self.params, np.float64, (n, len(PARAM_NAMES)), "failure params", "failures")
+        params = _widen_params(self.params)
+        self.params = _as(params, np.float64, (n, len(PARAM_NAMES)), "failure params", "failures")
         self.reason = _strings(self.reason)
         if self.reason.shape != (n,):
             raise TactileSchemaError(f"failures: reason must have shape ({n},), got {self.reason.shape}")
@@ -318,7 +353,7 @@ def _read_samples(g: h5py.Group, where: str, load_points: bool = True) -> Tactil
         g["indenter_kind"][()],
         g["pv_state"][()],
         g["reference_index"][()],
-        g["params"][()],
+        g["params"][()],  # version 1's 7 columns are widened by TactileSamples
         g["sample_id"][()],
         g["points"][()] if load_points and "points" in g else None,
         where=where,
@@ -335,9 +370,10 @@ def _check_header(f: h5py.File, where: str) -> None:
     if f.attrs.get("schema") != SCHEMA_NAME:
         raise TactileSchemaError(f"{where}: not a tactile dataset (schema attr {f.attrs.get('schema')!r})")
     version = int(f.attrs.get("schema_version", -1))
-    if version != SCHEMA_VERSION:
+    if version not in SUPPORTED_SCHEMA_VERSIONS:
         raise TactileSchemaError(
-            f"{where}: schema_version {version} is not supported (expected {SCHEMA_VERSION})"
+            f"{where}: schema_version {version} is not supported (expected one of "
+            f"{list(SUPPORTED_SCHEMA_VERSIONS)})"
         )
     missing = [k for k in _REQUIRED_ATTRS if k not in f.attrs]
     if missing:

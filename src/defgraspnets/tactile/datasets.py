@@ -9,6 +9,22 @@ one indentation read at each of its depths; every forearm shear is one press at 
 the shear distances in order (the contact is dragged with Coulomb friction by the FEM engine), every
 twist one press followed by the twist angles. A path costs about as much as its deepest state alone.
 
+Repeats (thesis §3.3: "the forearm experiments are repeated 4 more times so that a total of 8640
+datapoints are collected"). The simulator is deterministic, so a plain repeat would reproduce the first
+pass bit for bit; here repeat k >= 1 of every forearm path presses a *re-placed* forearm, as a real
+re-placement in the brace would: the forearm is moved by (offset_x, offset_y) [m] along the sensor's
+tangent axes x (along the forearm) and y (across it), turned by yaw [rad] about the sensor axis z, its
+radius scaled by radius_scale (the section of a tapered forearm under the sensor changes with its
+placement) and the skin-membrane Coulomb coefficient shifted by friction_offset (skin friction varies
+between sessions). Each value is drawn uniformly within +- the magnitudes of a
+:class:`ForearmPerturbation` (radius_scale within 1 +- radius_spread) by a generator seeded with
+(seed, repeat, the path's first grid id), so the draw of a path does not depend on sharding, batching or
+resume order. Repeat 0 is the nominal grid, unchanged. The device's motions (press, shear, twist about
+the sensor axis) are the commanded ones in every repeat. Repeat k of grid state i has sample id
+i + k n (n: the grid size, 1962), and every reading stores its repeat and perturbation in its params
+(``PERTURBATION_PARAM_NAMES``), so a user can see which placement produced it. A scaled radius needs its
+own FEM body, so paths of one radius are batched together (one simulator, one inflation, per radius).
+
 Each reading is stored as a :class:`~defgraspnets.data.tactile_schema.TactileSamples` row: the
 camera's depth image, the base wrench (the force and torque the indenter exerts on the sensor, sensor
 frame, about its origin: what the wrist F/T sensor of the thesis reads), the indenter's pose and the
@@ -20,13 +36,15 @@ from __future__ import annotations
 
 import logging
 from collections import defaultdict
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from defgraspnets.data.tactile_schema import (
     PARAM_NAMES,
+    PERTURBATION_PARAM_NAMES,
     TactileFailures,
     TactileReferences,
     TactileSamples,
@@ -44,6 +62,7 @@ from defgraspnets.tactile.membrane import ATMOSPHERIC_PRESSURE
 from defgraspnets.tactile.sensor import Indentation, MembraneSimulator
 
 __all__ = [
+    "ForearmPerturbation",
     "TactilePath",
     "forearm_paths",
     "generate_tactile_dataset",
@@ -65,7 +84,9 @@ class TactilePath:
 
     ``levels`` are fractions of the press depth (an indentation series) or, when ``motions`` is given,
     the press is read after each rigid motion (L, 4, 4) of the indenter in the sensor frame. ``ids``
-    and ``params`` (L, 7) name each reading.
+    and ``params`` (L, len(PARAM_NAMES)) name each reading. ``radius_scale`` (the indenter's radius
+    relative to the simulator's) and ``friction_offset`` (added to the simulator's Coulomb coefficient)
+    are the physical part of a repeat's perturbation (the pose part is in ``indentation``).
     """
 
     indentation: Indentation
@@ -73,13 +94,99 @@ class TactilePath:
     params: np.ndarray
     levels: np.ndarray | None = None
     motions: np.ndarray | None = None
+    radius_scale: float = 1.0
+    friction_offset: float = 0.0
 
     @property
     def kind(self) -> tuple:
-        """Paths of one kind and length are simulated in one batch."""
+        """Paths of one kind, length and indenter radius are simulated in one batch."""
         if self.motions is None:
-            return ("series", tuple(np.round(self.levels, 12)))
-        return ("motion", len(self.motions))
+            return ("series", tuple(np.round(self.levels, 12)), self.radius_scale)
+        return ("motion", len(self.motions), self.radius_scale)
+
+
+@dataclass(frozen=True)
+class ForearmPerturbation:
+    """How the repeats of the forearm experiment re-place the forearm (module docstring).
+
+    Every repeat k >= 1 of a path draws, uniformly and independently, its forearm offset along the
+    sensor x axis (along the forearm) in [-offset_x, offset_x] and along y (across it) in
+    [-offset_y, offset_y] [m], its yaw about the sensor z axis in [-yaw, yaw] [rad], its radius scale in
+    [1 - radius_spread, 1 + radius_spread] and its friction offset in [-friction_spread,
+    friction_spread] (added to the Coulomb coefficient), from a generator seeded with (seed, k, key).
+    Zero magnitudes switch a perturbation off. The defaults are the config's (configs/datagen/tactile.yaml):
+    a braced forearm re-placed within 5 mm and 5 degrees, its radius within 5 %, friction within 0.1.
+
+    Raises:
+        ValueError: a magnitude is negative or not finite, ``radius_spread`` >= 1 (the radius would not
+            stay > 0) or ``seed`` is not an integer >= 0; the message names the config key.
+    """
+
+    offset_x: float = 0.005
+    offset_y: float = 0.005
+    yaw: float = 0.0873
+    radius_spread: float = 0.05
+    friction_spread: float = 0.1
+    seed: int = 0
+
+    def __post_init__(self):
+        for name in ("offset_x", "offset_y", "yaw", "radius_spread", "friction_spread"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
+                raise ValueError(f"perturbation.{name} must be a number, got {value!r}")
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"perturbation.{name} must be a finite magnitude >= 0, got {value!r}")
+            object.__setattr__(self, name, float(value))
+        if self.radius_spread >= 1:
+            raise ValueError(
+                "perturbation.radius_spread must be < 1 (the forearm radius is scaled by 1 +- radius_spread, "
+                f"which must stay > 0), got {self.radius_spread!r}"
+            )
+        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
+            raise ValueError(f"perturbation.seed must be an integer >= 0, got {self.seed!r}")
+        object.__setattr__(self, "seed", int(self.seed))
+
+    @classmethod
+    def from_mapping(cls, values: Mapping | ForearmPerturbation | None) -> ForearmPerturbation:
+        """From a config mapping (e.g. the ``perturbation`` block); None = the defaults."""
+        if values is None:
+            return cls()
+        if isinstance(values, cls):
+            return values
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - names)
+        if unknown:
+            raise ValueError(f"unknown perturbation keys {unknown}; known: {sorted(names)}")
+        return cls(**dict(values))
+
+    def draw(self, repeat: int, key: int) -> dict[str, float]:
+        """The perturbation of repeat ``repeat`` of the path ``key`` (its first grid id): a dict over
+        ``PERTURBATION_PARAM_NAMES``. Repeat 0 is the nominal placement."""
+        if repeat == 0:
+            values = (0.0, 0.0, 0.0, 0.0, 1.0, 0.0)
+        else:
+            u = np.random.default_rng([self.seed, int(repeat), int(key)]).uniform(-1.0, 1.0, 5)
+            values = (
+                repeat,
+                u[0] * self.offset_x,
+                u[1] * self.offset_y,
+                u[2] * self.yaw,
+                1.0 + u[3] * self.radius_spread,
+                u[4] * self.friction_spread,
+            )
+        return dict(zip(PERTURBATION_PARAM_NAMES, map(float, values)))
+
+    @property
+    def is_zero(self) -> bool:
+        """No perturbation at all: every repeat would reproduce repeat 0."""
+        magnitudes = (self.offset_x, self.offset_y, self.yaw, self.radius_spread, self.friction_spread)
+        return not any(magnitudes)
+
+
+def _check_repeats(repeats) -> int:
+    if isinstance(repeats, bool) or not isinstance(repeats, (int, np.integer)) or repeats < 1:
+        raise ValueError(f"repeats must be an integer >= 1 (1 = the grid once), got {repeats!r}")
+    return int(repeats)
 
 
 def _params(**values) -> np.ndarray:
@@ -130,39 +237,68 @@ def _forearm_motion(c: ForearmCommand) -> np.ndarray:
     return T
 
 
-def forearm_paths(commands: dict[int, ForearmCommand], forearm: CapsuleIndenter, sensor) -> list[TactilePath]:
+def forearm_paths(
+    commands: dict[int, ForearmCommand],
+    forearm: CapsuleIndenter,
+    sensor,
+    repeats: int = 1,
+    perturbation: ForearmPerturbation | Mapping | None = None,
+    grid_size: int | None = None,
+) -> list[TactilePath]:
     """Group forearm commands into press-and-move paths: one per (depth, shear direction) for shears
     (distances in increasing order) and one per (depth, twist sense) for twists (angles in increasing
-    magnitude). The forearm lies across the pole along the sensor x axis, as :class:`ForearmCommand`."""
+    magnitude). The forearm lies across the pole along the sensor x axis, as :class:`ForearmCommand`.
+
+    With ``repeats`` > 1 the paths of repeat 0 (the nominal grid, exactly the paths of ``repeats=1``)
+    are followed by those of repeats 1, 2, ... on a forearm re-placed by ``perturbation`` (module
+    docstring); repeat k of command i has sample id ``i + k * grid_size`` (default: the largest command
+    id + 1, the grid size for the whole grid) and draws its perturbation from (seed, k, the path's
+    first command id).
+    """
+    repeats = _check_repeats(repeats)
+    perturbation = ForearmPerturbation.from_mapping(perturbation)
     groups: dict[tuple, list[tuple[int, ForearmCommand]]] = defaultdict(list)
     for i, c in commands.items():
         if c.shear_distance > 0 and c.twist != 0:
             raise IndenterError(f"forearm command {i} both shears and twists; the thesis does one at a time")
         key = ("shear", c.depth, c.shear_direction) if c.twist == 0 else ("twist", c.depth, np.sign(c.twist))
         groups[key].append((i, c))
-    top = sensor.dimensions.outer_pole + np.array([0.0, 0.0, forearm.radius + _BACKOFF])
-    paths = []
-    for key, members in groups.items():
+    if grid_size is None:
+        grid_size = max(commands, default=-1) + 1
+    elif commands and not int(grid_size) > max(commands):
+        raise ValueError(f"grid_size {grid_size!r} must exceed the largest command id {max(commands)}")
+    for members in groups.values():
         members.sort(key=lambda m: (m[1].shear_distance, abs(m[1].twist)))
-        depth = key[1]
-        paths.append(
-            TactilePath(
-                indentation=Indentation(Pose(top), depth, (0.0, 0.0, -1.0)),
-                ids=np.array([i for i, _ in members]),
-                params=np.stack(
-                    [
-                        _params(
-                            depth=c.depth,
-                            shear_direction=c.shear_direction,
-                            shear_distance=c.shear_distance,
-                            twist=c.twist,
-                        )
-                        for _, c in members
-                    ]
-                ),
-                motions=np.stack([_forearm_motion(c) for _, c in members]),
+    paths = []
+    for repeat in range(repeats):
+        for key, members in groups.items():
+            ids = np.array([i for i, _ in members])
+            draw = perturbation.draw(repeat, int(ids.min()))
+            height = forearm.radius * draw["radius_scale"] + _BACKOFF  # nominal: exactly radius + backoff
+            top = sensor.dimensions.outer_pole + np.array([draw["offset_x"], draw["offset_y"], height])
+            yaw = Rotation.from_rotvec([0.0, 0.0, draw["yaw"]])
+            pose = Pose(top) if repeat == 0 else Pose.from_rotation(top, yaw)
+            paths.append(
+                TactilePath(
+                    indentation=Indentation(pose, key[1], (0.0, 0.0, -1.0)),
+                    ids=ids + repeat * int(grid_size),
+                    params=np.stack(
+                        [
+                            _params(
+                                depth=c.depth,
+                                shear_direction=c.shear_direction,
+                                shear_distance=c.shear_distance,
+                                twist=c.twist,
+                                **draw,
+                            )
+                            for _, c in members
+                        ]
+                    ),
+                    motions=np.stack([_forearm_motion(c) for _, c in members]),
+                    radius_scale=float(draw["radius_scale"]),
+                    friction_offset=float(draw["friction_offset"]),
+                )
             )
-        )
     return paths
 
 
@@ -178,12 +314,51 @@ def sensor_references(sim: MembraneSimulator, label: str = "") -> TactileReferen
     )
 
 
+def _base_friction(sim: MembraneSimulator) -> float:
+    return float(next(b.friction for b in sim.solver.bodies if b.name == "indenter"))
+
+
+def _scaled_simulator(sim: MembraneSimulator, scale: float) -> MembraneSimulator:
+    """A simulator like ``sim`` (sensor, gas state, friction, camera, solver) whose indenter's radius is
+    scaled by ``scale``. Its idle indenter is far away, so its inflated reference equals ``sim``'s."""
+    if not isinstance(sim.indenter, (SphereIndenter, CapsuleIndenter)):
+        raise IndenterError(f"only sphere and capsule radii can be scaled, got {type(sim.indenter).__name__}")
+    return MembraneSimulator(
+        sim.sensor,
+        replace(sim.indenter, radius=sim.indenter.radius * scale),
+        sim.gas,
+        closed=sim.closed,
+        batch_size=sim.batch_size,
+        friction=_base_friction(sim),
+        intrinsics=None if sim.camera is None else sim.camera.intrinsics,
+        options=sim.solver.options,
+        inflation_steps=sim._inflation_steps,
+        device=sim.solver.device,
+    )
+
+
 def _simulate(sim: MembraneSimulator, batch: list[TactilePath], max_step: float):
+    """Simulate one batch (one kind, one radius) with each path's friction offset."""
     items = [p.indentation for p in batch]
-    if batch[0].motions is None:
-        return sim.indent_series(items, batch[0].levels, render=True, max_step=max_step)
-    motions = np.stack([p.motions for p in batch], axis=1)  # (L, n, 4, 4)
-    return sim.press_and_move(items, motions, render=True, max_step=max_step)
+    offsets = np.array([p.friction_offset for p in batch])
+    base = _base_friction(sim)
+    if np.any(offsets != 0):
+        mu = np.full(sim.batch_size, base)
+        mu[: len(batch)] += offsets
+        if np.any(mu < 0):
+            raise ValueError(
+                f"friction {base:g} + a path's friction offset {offsets.min():g} is negative: "
+                "perturbation.friction_spread must not exceed the friction"
+            )
+        sim.solver.set_friction("indenter", mu)
+    try:
+        if batch[0].motions is None:
+            return sim.indent_series(items, batch[0].levels, render=True, max_step=max_step)
+        motions = np.stack([p.motions for p in batch], axis=1)  # (L, n, 4, 4)
+        return sim.press_and_move(items, motions, render=True, max_step=max_step)
+    finally:
+        if np.any(offsets != 0):
+            sim.solver.set_friction("indenter", base)
 
 
 def generate_tactile_shard(
@@ -192,11 +367,15 @@ def generate_tactile_shard(
     writer: TactileShardWriter,
     max_step: float = 0.002,
     progress: bool = True,
+    _simulators: dict | None = None,
 ) -> dict:
     """Simulate ``paths`` (skipping those whose samples the writer already holds) and append them.
 
-    Paths are batched ``sim.batch_size`` at a time (same kind and length). Every batch is written as
-    one atomic part, so an interrupted run resumes where it stopped.
+    Paths are batched ``sim.batch_size`` at a time (same kind, length and indenter radius). Paths of a
+    perturbed repeat (:class:`ForearmPerturbation`) run with their friction offset on ``sim``'s
+    Coulomb coefficient and, when their radius is scaled, on a copy of ``sim`` with the scaled
+    indenter (built once per radius; one copy is kept at a time). Every batch is written as one atomic
+    part, so an interrupted run resumes where it stopped.
 
     Returns:
         counts: ``samples`` written, ``failed`` readings, ``skipped`` paths (already done), ``paths``.
@@ -214,6 +393,15 @@ def generate_tactile_shard(
         for i in range(0, len(group), sim.batch_size)
     ]
     counts = {"samples": 0, "failed": 0, "skipped": len(paths) - len(todo), "paths": len(todo)}
+    sims = {1.0: sim} if _simulators is None else _simulators
+
+    def simulator(scale: float) -> MembraneSimulator:
+        if scale not in sims:
+            for old in [k for k in sims if k != 1.0]:
+                del sims[old]
+            sims[scale] = _scaled_simulator(sim, scale)
+        return sims[scale]
+
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -223,11 +411,11 @@ def generate_tactile_shard(
         )
     for batch in batches:
         try:
-            readings = _simulate(sim, batch, max_step)
+            readings = _simulate(simulator(batch[0].radius_scale), batch, max_step)
         except IndenterError as error:
             if len(batch) > 1:  # some path leaves the workspace: simulate them one at a time
                 for p in batch:
-                    one = generate_tactile_shard(sim, [p], writer, max_step, progress=False)
+                    one = generate_tactile_shard(sim, [p], writer, max_step, False, sims)
                     counts["samples"] += one["samples"]
                     counts["failed"] += one["failed"]
                 if bar is not None:
@@ -289,7 +477,9 @@ def select_paths(
     """Every ``stride``-th path of the grid (a spread-out subset), at most ``limit`` of them, then the
     ``shard_index``-th of ``shard_count`` interleaved shards of those (``chosen[shard_index::shard_count]``:
     the shards are disjoint, cover the selection exactly, and each one spreads over the whole grid, so
-    independent processes can generate them in parallel and any finished subset is a fair sample)."""
+    independent processes can generate them in parallel and any finished subset is a fair sample).
+    With repeats, the grid is the repeated one (repeat 0's paths first, :func:`forearm_paths`); every
+    path carries its own perturbation, so a path's readings do not depend on the selection."""
     if int(stride) < 1 or (limit is not None and int(limit) < 1):
         raise ValueError(f"stride must be >= 1 and limit >= 1 or None, got {stride!r}, {limit!r}")
     if int(shard_count) < 1 or not 0 <= int(shard_index) < int(shard_count):
@@ -347,6 +537,8 @@ def generate_tactile_dataset(
     shard_index: int = 0,
     shard_count: int = 1,
     progress: bool = True,
+    repeats: int = 1,
+    perturbation: ForearmPerturbation | Mapping | None = None,
 ) -> dict:
     """Generate (or resume) one shard of the ``"poke"`` or ``"forearm"`` dataset of thesis §3.3.
 
@@ -360,15 +552,38 @@ def generate_tactile_dataset(
         stride, limit: which paths of the grid (:func:`select_paths`; 1, None = the whole grid).
         shard_index, shard_count: this shard's share of those paths (:func:`select_paths`).
         max_step: largest indenter motion per load step [m].
+        repeats: passes over the forearm grid (thesis: 5, the original and 4 repeats); repeats 1, 2, ...
+            re-place the forearm by ``perturbation`` (:class:`ForearmPerturbation` or its config
+            mapping; None = its defaults). Poking has no repeats (``repeats`` must be 1).
 
     Returns:
         counts of :func:`generate_tactile_shard` plus ``path`` and ``seconds``.
+
+    Raises:
+        ValueError: unknown experiment, ``repeats`` < 1 (or > 1 for poking), a bad perturbation
+            magnitude, or ``perturbation.friction_spread`` larger than ``friction``; the message names
+            the config key.
     """
     import time
     from pathlib import Path
 
     from defgraspnets.tactile.indenters import forearm_grid, poke_grid
 
+    if experiment not in ("poke", "forearm"):
+        raise ValueError(f"experiment must be 'poke' or 'forearm', got {experiment!r}")
+    repeats = _check_repeats(repeats)
+    perturbation = ForearmPerturbation.from_mapping(perturbation)
+    if experiment == "poke" and repeats != 1:
+        raise ValueError(
+            f"repeats must be 1 for the poke dataset (only the forearm experiment repeats), got {repeats}"
+        )
+    if repeats > 1 and perturbation.friction_spread > friction:
+        raise ValueError(
+            f"perturbation.friction_spread ({perturbation.friction_spread:g}) must not exceed friction "
+            f"({friction:g}): the Coulomb coefficient would go negative"
+        )
+    if repeats > 1 and perturbation.is_zero:
+        log.warning("repeats=%d with a zero perturbation: every repeat reproduces repeat 0", repeats)
     out_path = Path(out_path)
     if out_path.exists():
         return {"path": str(out_path), "samples": 0, "failed": 0, "skipped": -1, "paths": 0, "seconds": 0.0}
@@ -379,9 +594,8 @@ def generate_tactile_dataset(
     elif experiment == "forearm":
         if not isinstance(indenter, CapsuleIndenter):
             raise IndenterError(f"the forearm is a capsule indenter, got {type(indenter).__name__}")
-        paths = forearm_paths(dict(enumerate(forearm_grid())), indenter, sensor)
-    else:
-        raise ValueError(f"experiment must be 'poke' or 'forearm', got {experiment!r}")
+        grid = forearm_grid()
+        paths = forearm_paths(dict(enumerate(grid)), indenter, sensor, repeats, perturbation, len(grid))
     paths = select_paths(paths, stride, limit, shard_index, shard_count)
     t0 = time.perf_counter()
     sim = make_simulator(sensor, indenter, gauge_pressure, closed, batch_size, friction, intrinsics)
