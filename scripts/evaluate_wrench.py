@@ -4,8 +4,8 @@
         ckpts.forearm=checkpoints/wrench_forearm.ckpt ckpts.combined=checkpoints/wrench_combined.ckpt
 
 Each model is scored on the validation split of every dataset it was trained on (the datamodule's
-seeded per-shard 80:20 split, so the same samples it never trained on): poke -> poking, forearm ->
-forearm, combined -> both and their union. Writes ``wrench_eval.json`` (MSE in SI units next to the
+seeded 80:20 split by grid state, so the samples of states it never trained on): poke -> poking,
+forearm -> forearm, combined -> both and their union. Writes ``wrench_eval.json`` (MSE in SI units next to the
 thesis's 0.03 / 0.057 / 0.1, per-component RMSE and R²) and the Fig. 3.4 / 3.7 / 3.8 analogues as PNGs
 in the run directory. Config: configs/evaluate_wrench.yaml. Logic: :mod:`defgraspnets.eval.wrench`.
 """

@@ -7,20 +7,27 @@
 #   shard is resumable and spread over the whole grid, so the finished ones are a fair subset and a
 #   second call carries on where this one stopped. (Any job runner does the same: each shard is one
 #   independent Hydra run, e.g. `python datagen/tactile.py -m shard_index='range(0,200)' shard_count=200`.)
+#   Env REPEATS (default 1): passes over the forearm grid, given to its shards as repeats=$REPEATS
+#   (thesis: 5, the grid and 4 perturbed repeats; configs/datagen/tactile.yaml). Keep it fixed for a
+#   data directory: the shards interleave the repeated grid, so shards made with another value do not
+#   fit together. Poking never repeats. Training splits the forearm set by grid state (all repeats of a
+#   state on one side, defgraspnets.data.tactile_datamodule).
 # train: the three models of §3.4 on the finished shards (trainer.max_time bounds each), then
 #   scripts/evaluate_wrench.py and scripts/benchmark_wrench_cnn.py; results into OUT_DIR.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 phase=${1:?generate or train}
 budget=${2:?seconds}
+REPEATS=${REPEATS:-1}
 
 run_shards() {  # dataset shard_count worker workers deadline
-    local dataset=$1 count=$2 worker=$3 workers=$4 deadline=$5 i left
+    local dataset=$1 count=$2 worker=$3 workers=$4 deadline=$5 i left extra=()
+    [[ $dataset == forearm ]] && extra=(repeats="$REPEATS")
     for ((i = worker; i < count; i += workers)); do
         left=$((deadline - $(date +%s)))
         ((left > 10)) || break
         timeout "$left" python datagen/tactile.py dataset="$dataset" stride=1 limit=null \
-            shard_count="$count" shard_index="$i" shard_name="$(printf 'shard_%03d' "$i")" \
+            shard_count="$count" shard_index="$i" shard_name="$(printf 'shard_%03d' "$i")" ${extra[@]+"${extra[@]}"} \
             progress=false hydra.run.dir="logs/datagen_tactile/$dataset/$(printf '%03d' "$i")" || break
     done
 }

@@ -1,13 +1,20 @@
 """Tactile HDF5 schema (round trip, atomic resumable writes, validation) and the wrench datamodule."""
 
 import json
+import zlib
 
 import h5py
 import numpy as np
 import pytest
 
 import defgraspnets.data.tactile_schema as schema
-from defgraspnets.data.tactile_datamodule import TactileWrenchDataModule, normalize_depth, split_indices
+from defgraspnets.data.tactile_datamodule import (
+    TactileWrenchDataModule,
+    grid_size,
+    normalize_depth,
+    split_groups,
+    split_indices,
+)
 from defgraspnets.data.tactile_schema import (
     PARAM_NAMES,
     SCHEMA_VERSION,
@@ -306,3 +313,122 @@ def test_datamodule_split_batches_and_combined_dataset(tmp_path):
         TactileWrenchDataModule([str(tmp_path / "missing_*.h5")]).setup()
     with pytest.raises(ValueError, match="no training data"):
         split_indices(1, 0.6, 0, "x")
+
+
+# --------------------------------------------------------------------------- split by grid state
+def _val_rows(dm):
+    """{(file name, row)} of a set-up datamodule's validation split."""
+    return {(d.shard.path.name, int(r)) for d in dm.data_val.datasets for r in d.indices}
+
+
+def _legacy_val_rows(name, n, seed=0, val_fraction=0.2):
+    """The split as the datamodule made it before repeats existed (a row permutation per file)."""
+    perm = np.random.default_rng([seed, zlib.crc32(name.encode())]).permutation(n)
+    return {(name, int(r)) for r in perm[: int(round(val_fraction * n))]}
+
+
+def _forearm_rows(states, repeats, n_grid, seed=0):
+    """(sample ids, params) of grid ``states`` read ``repeats`` times as the generator numbers them:
+    repeat k of state i has id i + k n_grid, the command of state i and a perturbation (nominal for k = 0)."""
+    rng = np.random.default_rng(seed)
+    ids, params = [], []
+    for k in range(repeats):
+        for i in states:
+            row = np.full(len(PARAM_NAMES), np.nan)
+            row[3:7] = [0.0025 * (i % 9), 0.1 * (i // 9), 0.003 * (1 + i % 5), 0.0]  # the command
+            row[7:] = [0, 0, 0, 0, 1, 0] if k == 0 else [k, *rng.uniform(-0.005, 0.005, 3), 1.02, 0.05]
+            ids.append(i + k * n_grid)
+            params.append(row)
+    return np.array(ids), np.array(params)
+
+
+def _write_rows(path, ids, params, experiment="forearm", seed=0):
+    writer = TactileShardWriter(path, references(), experiment)
+    writer.append(TactileSamples(**{**_fields(samples(ids, seed)), "params": params}))
+    return writer.finalize()
+
+
+def test_repeats_of_a_grid_state_never_straddle_the_split(tmp_path):
+    n_grid = grid_size("forearm")
+    assert n_grid == 1962  # the forearm grid; repeat k of state i is sample i + 1962 k
+    states = np.arange(0, 600, 10)  # 60 grid states, 5 readings each (the nominal one + 4 repeats)
+    ids, params = _forearm_rows(states, 5, n_grid)
+    keep = np.ones(len(ids), bool)
+    keep[[3, 70, 71, 200]] = False  # failed readings: some states have fewer repeats
+    ids, params = ids[keep], params[keep]
+    # the generator interleaves the repeated grid over the shard files: a state's repeats lie in several
+    for j in range(3):
+        _write_rows(tmp_path / f"forearm_{j:03d}.h5", ids[j::3], params[j::3], seed=j)
+
+    def val_states(dm):
+        return {
+            int(sid % n_grid) for d in dm.data_val.datasets for sid in d.shard.samples.sample_id[d.indices]
+        }
+
+    def train_states(dm):
+        return {
+            int(sid % n_grid) for d in dm.data_train.datasets for sid in d.shard.samples.sample_id[d.indices]
+        }
+
+    dm = TactileWrenchDataModule([str(tmp_path / "forearm_*.h5")], seed=0)
+    dm.setup()
+    val, train = val_states(dm), train_states(dm)
+    assert not val & train  # no grid state on both sides
+    assert val | train == set(states.tolist())
+    assert len(val) == 12 and len(train) == 48  # 80:20 by states
+    assert len(dm.data_train) + len(dm.data_val) == len(ids)
+    assert 0.1 < len(dm.data_val) / len(ids) < 0.3  # ~20 % of the readings too
+    # deterministic for a seed, whatever order the shards are listed in; another seed, another split
+    again = TactileWrenchDataModule([str(tmp_path / f"forearm_{j:03d}.h5") for j in (2, 0, 1)], seed=0)
+    again.setup()
+    assert _val_rows(again) == _val_rows(dm)
+    other = TactileWrenchDataModule([str(tmp_path / "forearm_*.h5")], seed=1)
+    other.setup()
+    assert val_states(other) != val and not val_states(other) & train_states(other)
+
+    # poke ids count in the poke grid: poke samples 0..49 and forearm state 0.. are unrelated, and the
+    # poke shard (no repeats) keeps its own per-file split
+    write_shard(tmp_path / "poke_000.h5", 50, seed=5)
+    poke = TactileWrenchDataModule([str(tmp_path / "poke_*.h5")])
+    poke.setup()
+    assert _val_rows(poke) == _legacy_val_rows("poke_000.h5", 50)
+    combined = TactileWrenchDataModule([str(tmp_path / "poke_*.h5"), str(tmp_path / "forearm_*.h5")])
+    combined.setup()
+    assert _val_rows(combined) == _val_rows(poke) | _val_rows(dm)
+
+    # ids that do not follow the grid's numbering are an error, not a silent mis-grouping
+    ids, params = _forearm_rows(np.arange(5), 2, n_grid)
+    params[4, 3] += 0.001  # state 4's nominal reading (shard 0) and its repeat 1 (shard 1) disagree
+    _write_rows(tmp_path / "bad" / "forearm_000.h5", ids[:5], params[:5])
+    _write_rows(tmp_path / "bad" / "forearm_001.h5", ids[5:], params[5:])
+    with pytest.raises(ValueError, match="different commands"):
+        TactileWrenchDataModule([str(tmp_path / "bad" / "forearm_*.h5")]).setup()
+    _write_rows(tmp_path / "far" / "forearm_000.h5", [2 * n_grid + 1], params[-1:])  # repeat 1, id of 2
+    with pytest.raises(ValueError, match="not a state of a forearm grid of 1962"):
+        TactileWrenchDataModule([str(tmp_path / "far" / "forearm_000.h5")]).setup()
+
+
+def test_shards_without_repeats_split_exactly_as_before(tmp_path):
+    # version 2, one pass over the grid (repeat 0 everywhere), rows stored out of id order
+    ids, params = _forearm_rows(np.arange(37), 1, grid_size("forearm"))
+    order = np.random.default_rng(0).permutation(len(ids))
+    _write_rows(tmp_path / "forearm_000.h5", ids[order], params[order])
+    write_shard(tmp_path / "forearm_001.h5", 23, seed=1, experiment="forearm")  # repeat NaN (poke-like)
+    write_shard(tmp_path / "forearm_002.h5", 41, seed=2, experiment="forearm")
+    with h5py.File(tmp_path / "forearm_002.h5", "r+") as f:  # a finished version 1 file
+        _to_version_1(f)
+    assert read_tactile_shard(tmp_path / "forearm_002.h5").attrs["schema_version"] == 1
+    for seed in (0, 3):
+        dm = TactileWrenchDataModule([str(tmp_path / "forearm_*.h5")], seed=seed)
+        dm.setup()
+        expected = set()
+        for name, n in (("forearm_000.h5", 37), ("forearm_001.h5", 23), ("forearm_002.h5", 41)):
+            expected |= _legacy_val_rows(name, n, seed)
+        assert _val_rows(dm) == expected
+    # grouping one reading per state is the row split itself
+    for n in (1, 7, 50):
+        for got, want in zip(split_groups(np.arange(n) * 3 + 2, 0.2, 4, "k"), split_indices(n, 0.2, 4, "k")):
+            np.testing.assert_array_equal(got, want)
+    train, val = split_groups([7, 7, 1, 9, 1, 7, 4, 4, 2, 3], 0.2, 0, "k")
+    groups = np.array([7, 7, 1, 9, 1, 7, 4, 4, 2, 3])
+    assert len(set(groups[val])) == 1 and not set(groups[val]) & set(groups[train])  # 1 of 5 groups

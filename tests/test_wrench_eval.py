@@ -102,6 +102,44 @@ def test_figures_pick_the_nearest_grid_slice(tmp_path):
         plot_forearm_twist(poke, np.zeros((len(poke), 6)), {}, tmp_path / "d.png")
 
 
+def test_figure_slices_show_the_nominal_placement_only(tmp_path, monkeypatch):
+    """With perturbed forearm repeats every grid state is read several times; a figure's slice shows
+    repeat 0 (the nominal placement) only, one point per state."""
+    nominal = np.full((len(_forearm_params()), len(PARAM_NAMES)), np.nan)
+    nominal[:, :7] = _forearm_params()
+    nominal[:, 7:] = [0, 0, 0, 0, 1, 0]
+    repeats = []
+    for k in (1, 2):  # the same commands on a re-placed forearm
+        r = nominal.copy()
+        r[:, 7:] = [k, 0.003, -0.002, 0.05, 1.03, 0.05]
+        repeats.append(r)
+    fore = np.concatenate([repeats[0], nominal, repeats[1]])
+    true = np.zeros((len(fore), 6))
+    true[:, 0] = fore[:, P["shear_distance"]] + fore[:, P["repeat"]]  # repeats read differently
+    true[:, 5] = fore[:, P["twist"]]
+    info = plot_forearm_shear(fore, true, {"m": true}, tmp_path / "b.png", direction=2.0, depth=0.007)
+    assert info["samples"] == 3  # the 3 shear distances of the slice, not 3 x 3 readings
+    assert plot_forearm_twist(fore, true, {"m": true}, tmp_path / "c.png")["samples"] == 8
+    old = np.concatenate([nominal[:, :7], nominal[:, :7]])  # 7-column (version 1) params: all nominal
+    assert plot_forearm_shear(old, np.zeros((len(old), 6)), {}, tmp_path / "d.png")["samples"] == 6
+    perturbed = fore[:, P["repeat"]] > 0
+    with pytest.raises(ValueError, match="no twist samples"):  # repeats alone show nothing
+        plot_forearm_twist(fore[perturbed], true[perturbed], {}, tmp_path / "e.png")
+    # the plotted values are those of repeat 0: F_x = shear distance + repeat
+    import matplotlib.axes
+
+    curves = []
+    original = matplotlib.axes.Axes.plot
+
+    def spy(ax, *args, **kwargs):
+        curves.append(np.asarray(args[1]))
+        return original(ax, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.axes.Axes, "plot", spy)
+    plot_forearm_shear(fore, true, {}, tmp_path / "f.png", direction=2.0, depth=0.007)
+    np.testing.assert_allclose(curves[0], [0.003, 0.009, 0.015])
+
+
 def _shard(path, experiment, params, seed):
     """A shard whose wrench is a linear function of a dent's depth: learnable by the CNN."""
     rng = np.random.default_rng(seed)

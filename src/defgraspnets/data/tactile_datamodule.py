@@ -12,11 +12,33 @@ shape. ``depth_scale = 0.01 m`` makes the
 thesis's 0.5-2.5 cm indentations O(1). Targets are the wrenches in SI units (N, N m), unnormalized,
 as in the thesis ("All force-torque values are recorded in SI units"; the MSE it reports is in SI).
 
-Split (thesis: "An 80:20 train/test split"): every shard file is split on its own with a
-permutation seeded by ``(seed, crc32(file name))``, so the split of a shard does not depend on which
-other shards are loaded: the combined dataset's validation set is exactly the union of the poking
-and forearm validation sets, and the three models of §3.4 are compared on the same samples. The
-test set is the validation split (the thesis has no third split).
+Split (thesis: "An 80:20 train/test split", :func:`split_tactile_shards`): the split is made over
+*nominal grid states*, never over single readings. The repeated forearm experiment
+(:mod:`defgraspnets.tactile.datasets`) reads every grid state i once per repeat k, as sample id
+``i + k n`` (n: the grid size), on a slightly re-placed forearm: the repeats of one state are
+near-duplicates (same command, nearly the same image and wrench). Split row by row, almost every
+validation reading would have a twin of its state in the training set (with 5 repeats, all but
+0.2^4 = 0.16 % of them), so the validation error would measure recall of seen states, not
+generalization to unseen ones, and would not be the thesis's held-out number. All readings of a state
+therefore go to the same side, 80:20 by states. Since ``select_paths`` interleaves the repeated grid
+over the shard files, the repeats of a state lie in different files, so the grouping spans files:
+
+* An experiment (``attrs["experiment"]``) with repeats in any loaded shard (a finite ``repeat`` param
+  > 0) is split as one block: its readings are grouped by nominal state id
+  ``sample_id - repeat * n`` (:func:`nominal_state_ids`), and the sorted state ids are permuted by a
+  generator seeded by ``(seed, crc32(experiment))`` (:func:`split_groups`). The split of a state does
+  not depend on which file holds its readings, nor on the order the shards are listed.
+* An experiment without repeats (``repeat`` NaN or 0 everywhere: poking, version 1 files, a forearm
+  grid generated once) has one reading per state, so grouping changes nothing; every shard file is
+  split on its own, exactly as before repeats existed (:func:`split_indices`, a permutation of its
+  rows seeded by ``(seed, crc32(file name))``), and the split of a shard does not depend on which
+  other shards are loaded.
+
+Sample ids count within an experiment's grid (poke id 5 and forearm id 5 are different states), so
+states are grouped per experiment and never across them: the combined dataset's validation set is
+exactly the union of the poking and forearm validation sets (given the same shard files), and the
+three models of §3.4 are compared on the same samples. The test set is the validation split (the
+thesis has no third split).
 """
 
 from __future__ import annotations
@@ -30,9 +52,26 @@ import numpy as np
 import torch
 from torch.utils.data import ConcatDataset, DataLoader, Dataset
 
-from defgraspnets.data.tactile_schema import TactileShard, read_tactile_shard
+from defgraspnets.data.tactile_schema import (
+    COMMAND_PARAM_NAMES,
+    PARAM_NAMES,
+    TactileShard,
+    read_tactile_shard,
+)
 
-__all__ = ["TactileWrenchDataModule", "TactileWrenchDataset", "normalize_depth", "split_indices"]
+__all__ = [
+    "TactileWrenchDataModule",
+    "TactileWrenchDataset",
+    "grid_size",
+    "has_repeats",
+    "nominal_state_ids",
+    "normalize_depth",
+    "split_groups",
+    "split_indices",
+    "split_tactile_shards",
+]
+
+_REPEAT = PARAM_NAMES.index("repeat")
 
 
 def normalize_depth(depth, reference, depth_scale: float):
@@ -57,6 +96,108 @@ def split_indices(n: int, val_fraction: float, seed: int, key: str) -> tuple[np.
     if n - n_val < 1:
         raise ValueError(f"{key}: {n} samples leave no training data at val_fraction={val_fraction}")
     return np.sort(perm[n_val:]), np.sort(perm[:n_val])
+
+
+def split_groups(groups, val_fraction: float, seed: int, key: str) -> tuple[np.ndarray, np.ndarray]:
+    """Seeded (train, val) row split that keeps every group on one side.
+
+    ``groups`` (N,) labels each row (e.g. its nominal grid state); the sorted distinct labels are split
+    by :func:`split_indices` (``round(val_fraction * groups)`` of them to validation) and every row
+    follows its label, so the proportion holds by groups (by rows only on average). With distinct,
+    increasing labels (one row per group, rows in label order) this is exactly ``split_indices(N)``.
+    """
+    labels, inverse = np.unique(np.asarray(groups), return_inverse=True)
+    _, val = split_indices(len(labels), val_fraction, seed, key)
+    is_val = np.zeros(len(labels), dtype=bool)
+    is_val[val] = True
+    rows = is_val[inverse.ravel()]
+    return np.flatnonzero(~rows), np.flatnonzero(rows)
+
+
+def grid_size(experiment: str) -> int:
+    """Number of states of an experiment's grid: the ``n`` of repeat ids ``i + k n``
+    (:mod:`defgraspnets.tactile.datasets`; only the forearm experiment repeats)."""
+    if experiment == "forearm":
+        from defgraspnets.tactile.indenters import forearm_grid  # lazy: pulls in the FEM modules
+
+        return len(forearm_grid())
+    raise ValueError(f"experiment {experiment!r} has no repeated grid (only 'forearm' repeats)")
+
+
+def has_repeats(shard: TactileShard) -> bool:
+    """Whether a shard holds readings of a repeat k >= 1 (``repeat`` NaN = not recorded = nominal)."""
+    repeat = shard.samples.params[:, _REPEAT]
+    return bool(np.any(np.isfinite(repeat) & (repeat > 0)))
+
+
+def nominal_state_ids(shard: TactileShard, n: int) -> np.ndarray:
+    """(N,) the grid state i of every reading: ``sample_id - repeat * n`` (repeat NaN counts as 0).
+
+    Raises:
+        ValueError: a repeat is not an integer >= 0, or a sample id does not lie in its repeat's id
+            range ``[k n, (k + 1) n)`` (the shard was made on a grid of another size).
+    """
+    s = shard.samples
+    repeat = s.params[:, _REPEAT]
+    repeat = np.where(np.isnan(repeat), 0.0, repeat)
+    if np.any(~np.isfinite(repeat) | (repeat < 0) | (repeat != np.round(repeat))):
+        raise ValueError(f"{shard.path}: the repeat params must be integers >= 0, got {np.unique(repeat)}")
+    k = repeat.astype(np.int64)
+    ids = s.sample_id.astype(np.int64) - k * int(n)
+    bad = (ids < 0) | (ids >= n)
+    if bad.any():
+        j = int(np.flatnonzero(bad)[0])
+        raise ValueError(
+            f"{shard.path}: sample id {int(s.sample_id[j])} of repeat {int(k[j])} is not a state of a "
+            f"{shard.experiment} grid of {n} states (ids i + repeat * {n}, 0 <= i < {n})"
+        )
+    return ids
+
+
+def _check_commands(shards: list[TactileShard], states: list[np.ndarray]) -> None:
+    """The readings grouped as one state must share its command (the first params columns)."""
+    commands = np.concatenate([s.samples.params[:, : len(COMMAND_PARAM_NAMES)] for s in shards])
+    labels, first, inverse = np.unique(np.concatenate(states), return_index=True, return_inverse=True)
+    same = np.isclose(commands, commands[first][inverse.ravel()], rtol=1e-9, atol=1e-12, equal_nan=True)
+    if not same.all():
+        j = int(np.flatnonzero(~same.all(axis=1))[0])
+        raise ValueError(
+            f"{shards[0].experiment} readings of nominal state {int(labels[inverse.ravel()[j]])} have "
+            "different commands: their sample ids do not follow the grid's i + repeat * n numbering"
+        )
+
+
+def split_tactile_shards(
+    shards: list[TactileShard], val_fraction: float, seed: int
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The (train rows, val rows) of every shard, split by nominal grid state (module docstring).
+
+    Experiments with repeats are split as one block over their shards (:func:`split_groups` of
+    :func:`nominal_state_ids`, key: the experiment name); the shards of experiments without repeats
+    each on their own by rows (:func:`split_indices`, key: the file name), as before repeats existed.
+    """
+    out: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(shards)
+    by_experiment: dict[str, list[int]] = {}
+    for j, shard in enumerate(shards):
+        by_experiment.setdefault(shard.experiment, []).append(j)
+    for experiment, members in by_experiment.items():
+        if not any(has_repeats(shards[j]) for j in members):
+            for j in members:
+                n = len(shards[j].samples)
+                out[j] = split_indices(n, val_fraction, seed, shards[j].path.name)
+            continue
+        n = grid_size(experiment)
+        states = [nominal_state_ids(shards[j], n) for j in members]
+        _check_commands([shards[j] for j in members], states)
+        train, _ = split_groups(np.concatenate(states), val_fraction, seed, experiment)
+        in_train = np.zeros(sum(map(len, states)), dtype=bool)
+        in_train[train] = True
+        start = 0
+        for j, ids in zip(members, states):
+            rows = in_train[start : start + len(ids)]
+            out[j] = (np.flatnonzero(rows), np.flatnonzero(~rows))
+            start += len(ids)
+    return out
 
 
 class TactileWrenchDataset(Dataset):
@@ -98,7 +239,8 @@ class TactileWrenchDataModule(L.LightningDataModule):
         shards: shard files or glob patterns (e.g. ``["data/tactile/poke/*.h5"]``); a combined
             dataset lists the patterns of both experiments.
         batch_size: training batch size (thesis: 500 poking and combined, 400 forearm).
-        val_fraction: validation fraction of every shard (thesis: 0.2).
+        val_fraction: validation fraction (thesis: 0.2) of every shard's readings, or of an
+            experiment's grid states where it has repeats (module docstring).
         seed: split seed.
         depth_scale: input normalization length [m].
         num_workers, pin_memory: DataLoader options.
@@ -152,8 +294,9 @@ class TactileWrenchDataModule(L.LightningDataModule):
         if len(shapes) != 1:
             raise ValueError(f"tactile shards have different image sizes: {sorted(shapes)}")
         train, val = [], []
-        for shard in self.shards:
-            tr, va = split_indices(len(shard.samples), self.val_fraction, self.seed, shard.path.name)
+        for shard, (tr, va) in zip(
+            self.shards, split_tactile_shards(self.shards, self.val_fraction, self.seed)
+        ):
             train.append(TactileWrenchDataset(shard, tr, self.depth_scale))
             val.append(TactileWrenchDataset(shard, va, self.depth_scale))
         self.data_train, self.data_val = ConcatDataset(train), ConcatDataset(val)

@@ -14,6 +14,11 @@ ground truth next to each model's prediction on the same samples, as the thesis'
 * Fig. 3.7: the force components along a forearm shear (direction phi = 3 pi / 4, depth 0.75 cm) vs
   the shear distance.
 * Fig. 3.8: tau_z vs the forearm's yaw (twist) angle, one curve per indentation depth.
+
+A figure's slice is a set of grid states, and with the repeated forearm experiment every state is read
+once per repeat (on a re-placed forearm, :mod:`defgraspnets.tactile.datasets`): the figures show
+repeat 0 only, the nominal placement (rows whose ``repeat`` param is 0 or NaN, i.e. not recorded:
+poking and version 1 files), so each curve has one point per state.
 """
 
 from __future__ import annotations
@@ -85,7 +90,8 @@ def wrench_errors(true, predicted) -> WrenchErrors:
 
 
 def dataset_params(dataset) -> np.ndarray:
-    """(N, 7) grid parameters (``PARAM_NAMES``) of the samples of a
+    """(N, len(PARAM_NAMES)) parameters (``PARAM_NAMES``: the command, then the repeat and its
+    perturbation) of the samples of a
     :class:`~defgraspnets.data.tactile_datamodule.TactileWrenchDataset` or a ConcatDataset of them, in
     the dataset's order."""
     parts = getattr(dataset, "datasets", [dataset])
@@ -109,6 +115,14 @@ def predict_dataset(
     if not true:
         raise ValueError("the dataset is empty")
     return np.concatenate(true), np.concatenate(pred)
+
+
+def _nominal(params: np.ndarray) -> np.ndarray:
+    """(N,) bool: rows of repeat 0, the nominal placement (``repeat`` 0, or NaN = not recorded; params
+    with only the 7 command columns of schema version 1 are all nominal)."""
+    if params.shape[1] <= _P["repeat"]:
+        return np.ones(len(params), dtype=bool)
+    return ~(params[:, _P["repeat"]] > 0)  # NaN > 0 is False
 
 
 def _nearest(values: np.ndarray, target: float) -> float:
@@ -138,11 +152,13 @@ def plot_poke_torque_polar(
     depth: float = 0.015,
 ) -> dict:
     """Fig. 3.4 analogue: tau_x at the poke contact points (phi, rho) for the grid's theta and depth
-    nearest to the requested ones. Returns the chosen (theta, depth) and the sample count."""
+    nearest to the requested ones (repeat 0 only). Returns the chosen (theta, depth) and the sample
+    count."""
     params = np.asarray(params)
-    th = _nearest(params[:, _P["theta"]], theta)
-    de = _nearest(params[:, _P["depth"]], depth)
-    sel = np.isclose(params[:, _P["theta"]], th) & np.isclose(params[:, _P["depth"]], de)
+    nominal = _nominal(params)
+    th = _nearest(params[nominal, _P["theta"]], theta)
+    de = _nearest(params[nominal, _P["depth"]], depth)
+    sel = nominal & np.isclose(params[:, _P["theta"]], th) & np.isclose(params[:, _P["depth"]], de)
     columns = {
         "simulated (ground truth)": np.asarray(true)[sel],
         **{k: np.asarray(v)[sel] for k, v in predictions.items()},
@@ -183,9 +199,10 @@ def plot_forearm_shear(
     depth: float = 0.0075,
 ) -> dict:
     """Fig. 3.7 analogue: F_x, F_y, F_z vs shear distance along the grid's shear direction and depth
-    nearest to the requested ones (shear samples only, twist = 0)."""
+    nearest to the requested ones (shear samples only, twist = 0; repeat 0 only, the nominal placement:
+    one point per shear distance)."""
     params = np.asarray(params)
-    shear = params[:, _P["twist"]] == 0
+    shear = _nominal(params) & (params[:, _P["twist"]] == 0)
     d = _nearest(params[shear, _P["shear_direction"]], direction)
     de = _nearest(params[shear, _P["depth"]], depth)
     sel = shear & np.isclose(params[:, _P["shear_direction"]], d) & np.isclose(params[:, _P["depth"]], de)
@@ -210,9 +227,11 @@ def plot_forearm_shear(
 def plot_forearm_twist(
     params: np.ndarray, true: np.ndarray, predictions: Mapping[str, np.ndarray], path
 ) -> dict:
-    """Fig. 3.8 analogue: tau_z vs the forearm's yaw angle, one panel per model, one curve per depth."""
+    """Fig. 3.8 analogue: tau_z vs the forearm's yaw angle, one panel per model, one curve per depth
+    (repeat 0 only, the nominal placement)."""
     params = np.asarray(params)
     twist = np.isfinite(params[:, _P["twist"]]) & (params[:, _P["twist"]] != 0)  # poke rows carry NaN
+    twist &= _nominal(params)
     if not twist.any():
         raise ValueError("no twist samples to plot")
     depths = np.unique(params[twist, _P["depth"]])
