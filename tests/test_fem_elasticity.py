@@ -187,44 +187,49 @@ def test_patch_test_small_strain_matches_hookes_law():
     assert np.abs(eq.vertex_stress[0] - expected).max() / np.abs(expected).max() < 2e-3
 
 
-def test_patch_test_large_strain_gives_constant_exact_stress():
-    F = np.array([[1.3, 0.2, 0.0], [-0.1, 0.8, 0.15], [0.05, 0.0, 1.1]])
-    mesh, eq, target = _patch_solve(F)
-    interior = ~mesh.is_surface_vertex
-    np.testing.assert_allclose(eq.displacement[0, interior], target[interior], atol=1e-11)
-    expected = corotated_cauchy_stress(F, MAT.shear_modulus, MAT.lame_lambda)
-    np.testing.assert_allclose(
-        eq.tet_stress[0],
-        np.broadcast_to(expected, eq.tet_stress[0].shape),
-        atol=1e-7 * np.abs(expected).max(),
-    )
-    # strain energy = V Psi(F)
+def _corotated_psi(F, m):
     s = np.linalg.svd(F, compute_uv=False)
-    psi = MAT.shear_modulus * np.sum((s - 1) ** 2) + 0.5 * MAT.lame_lambda * (np.prod(s) - 1) ** 2
-    assert eq.strain_energy[0] == pytest.approx(mesh.volume * psi, rel=1e-10)
+    return m.shear_modulus * np.sum((s - 1) ** 2) + 0.5 * m.lame_lambda * (np.prod(s) - 1) ** 2
 
 
-def test_neohookean_patch_test_at_large_compression_gives_the_analytic_stress():
-    """60 % volume loss (J = 0.4): the interior follows the affine map and every tet carries the closed-form
-    Neo-Hookean Cauchy stress, computed independently with NumPy."""
-    F = np.array([[0.6, 0.1, 0.0], [-0.05, 0.8, 0.1], [0.02, 0.0, 0.85]])
-    nh = fem.Material(E, NU, 1000.0, model="neohookean")
-    mesh, eq, target = _patch_solve(F, material=nh)
+def _neohookean_psi(F, m):
+    lj = np.log(np.linalg.det(F))
+    return 0.5 * m.shear_modulus * (np.sum(F * F) - 3) - m.shear_modulus * lj + 0.5 * m.lame_lambda * lj**2
+
+
+@pytest.mark.parametrize(
+    "model, F, cauchy, psi",
+    [
+        (
+            "corotated",
+            [[1.3, 0.2, 0.0], [-0.1, 0.8, 0.15], [0.05, 0.0, 1.1]],
+            corotated_cauchy_stress,
+            _corotated_psi,
+        ),
+        # 60 % volume loss (J = 0.4)
+        (
+            "neohookean",
+            [[0.6, 0.1, 0.0], [-0.05, 0.8, 0.1], [0.02, 0.0, 0.85]],
+            neohookean_cauchy_stress,
+            _neohookean_psi,
+        ),
+    ],
+)
+def test_patch_test_large_strain_gives_constant_exact_stress(model, F, cauchy, psi):
+    """The interior follows the affine map and every tet carries the closed-form Cauchy stress and energy
+    of the model, computed independently with NumPy."""
+    F = np.array(F)
+    material = fem.Material(E, NU, 1000.0, model=model)
+    mesh, eq, target = _patch_solve(F, material=material)
     interior = ~mesh.is_surface_vertex
     np.testing.assert_allclose(eq.displacement[0, interior], target[interior], atol=1e-11)
-    expected = neohookean_cauchy_stress(F, nh.shear_modulus, nh.lame_lambda)
+    expected = cauchy(F, material.shear_modulus, material.lame_lambda)
     np.testing.assert_allclose(
         eq.tet_stress[0],
         np.broadcast_to(expected, eq.tet_stress[0].shape),
         atol=1e-7 * np.abs(expected).max(),
     )
-    J, i1 = np.linalg.det(F), np.sum(F * F)
-    psi = (
-        0.5 * nh.shear_modulus * (i1 - 3)
-        - nh.shear_modulus * np.log(J)
-        + 0.5 * nh.lame_lambda * np.log(J) ** 2
-    )
-    assert eq.strain_energy[0] == pytest.approx(mesh.volume * psi, rel=1e-10)
+    assert eq.strain_energy[0] == pytest.approx(mesh.volume * psi(F, material), rel=1e-10)
     assert eq.inverted_tets[0] == 0
 
 
