@@ -10,6 +10,7 @@ import pytest
 import defgraspnets.data.tactile_schema as schema
 from defgraspnets.data.tactile_datamodule import (
     TactileWrenchDataModule,
+    commanded_state_keys,
     grid_size,
     normalize_depth,
     split_groups,
@@ -432,3 +433,135 @@ def test_shards_without_repeats_split_exactly_as_before(tmp_path):
     train, val = split_groups([7, 7, 1, 9, 1, 7, 4, 4, 2, 3], 0.2, 0, "k")
     groups = np.array([7, 7, 1, 9, 1, 7, 4, 4, 2, 3])
     assert len(set(groups[val])) == 1 and not set(groups[val]) & set(groups[train])  # 1 of 5 groups
+
+
+# --------------------------------------------------------------------------- identical commands, other ids
+FOREARM_FIELDS = ("depth", "shear_direction", "shear_distance", "twist")
+POKE_FIELDS = ("phi", "contact_radius", "theta", "depth")
+# the forearm grid's twist psi = +0 and -0 at depth m / 400 m: one pure press under two ids
+FOREARM_TWINS = [(1800 + 18 * m, 1809 + 18 * m) for m in range(9)]
+
+
+def _grid_rows(grid, fields, states, repeats=1, seed=0):
+    """(sample ids, params) of ``states`` of a real command grid, numbered as the generator does
+    (repeat k of state i: id i + k len(grid), a perturbation for k >= 1, none recorded for poking)."""
+    rng = np.random.default_rng(seed)
+    ids, params = [], []
+    for k in range(repeats):
+        for i in states:
+            row = np.full(len(PARAM_NAMES), np.nan)
+            for name in fields:
+                row[PARAM_NAMES.index(name)] = getattr(grid[i], name)
+            if fields == FOREARM_FIELDS:
+                row[7:] = [0, 0, 0, 0, 1, 0] if k == 0 else [k, *rng.uniform(-0.005, 0.005, 3), 1.02, 0.05]
+            ids.append(i + k * len(grid))
+            params.append(row)
+    return np.array(ids), np.array(params)
+
+
+def _side_by_id(dm, n_grid=None):
+    """{state id: set of sides ('train'/'val')} of a set-up datamodule (ids mod ``n_grid``)."""
+    sides = {}
+    for side, data in (("train", dm.data_train), ("val", dm.data_val)):
+        for d in data.datasets:
+            for sid in d.shard.samples.sample_id[d.indices]:
+                sides.setdefault(int(sid % n_grid) if n_grid else int(sid), set()).add(side)
+    return sides
+
+
+def test_commanded_state_keys_find_the_grid_twins():
+    from defgraspnets.tactile.indenters import forearm_grid, poke_grid
+
+    def classes(grid, fields, experiment):
+        _, params = _grid_rows(grid, fields, range(len(grid)))
+        keys = commanded_state_keys(params, experiment)
+        assert np.isfinite(keys).all()
+        _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+        inverse = inverse.ravel()
+        return [np.flatnonzero(inverse == c).tolist() for c in np.flatnonzero(counts > 1)]
+
+    forearm = forearm_grid()
+    twins = classes(forearm, FOREARM_FIELDS, "forearm")
+    assert sorted(map(tuple, twins)) == FOREARM_TWINS  # 9 pairs, nothing else (no shear of distance 0)
+    for a, b in FOREARM_TWINS:
+        assert forearm[a].twist == forearm[b].twist == 0 and forearm[a].shear_distance == 0
+        assert np.signbit(forearm[b].twist) and forearm[a].depth == forearm[b].depth
+    poke = poke_grid()
+    pole = classes(poke, POKE_FIELDS, "poke")
+    assert sorted(map(len, pole)) == [40] * 5  # the pole poke, every phi, at each of the 5 depths
+    assert all(poke[i].contact_radius == poke[i].theta == 0 for c in pole for i in c)
+    # a shear of distance 0 is the press whatever its direction; unrecorded params group nothing
+    press = np.full((3, len(PARAM_NAMES)), np.nan)
+    press[:, 3:7] = [[0.01, 0.0, 0.0, -0.0], [0.01, 1.3, 0.0, 0.0], [0.01, 1.3, 1e-12, 0.0]]
+    keys = commanded_state_keys(press, "forearm")
+    assert (keys[0] == keys[1]).all() and (keys[1] == keys[2]).all()  # within COMMAND_TOLERANCE
+    press[2, 5] = 0.003
+    assert not (commanded_state_keys(press, "forearm")[2] == keys[0]).all()
+    press[1, 6] = np.nan
+    assert np.isnan(commanded_state_keys(press, "forearm")[1]).all()
+    assert np.isnan(commanded_state_keys(press, "other")).all()
+
+
+def test_identical_commands_never_straddle_the_split(tmp_path):
+    from defgraspnets.tactile.indenters import forearm_grid, poke_grid
+
+    forearm = forearm_grid()
+    n = len(forearm)
+    # the whole forearm grid with a repeat; 4 interleaved files put the twins of a pair in different ones
+    ids, params = _grid_rows(forearm, FOREARM_FIELDS, range(n), repeats=2)
+    for j in range(4):
+        _write_rows(tmp_path / "rep" / f"forearm_{j:03d}.h5", ids[j::4], params[j::4], seed=j)
+    # one pass (no repeats), in 3 files as the generator writes it: a twin pair in one file (one path)
+    ids1, params1 = _grid_rows(forearm, FOREARM_FIELDS, range(n))
+    for j in range(3):
+        _write_rows(tmp_path / "once" / f"forearm_{j:03d}.h5", ids1[j::3], params1[j::3], seed=j)
+    # poking: the 200 pole pokes (40 phi x 5 depths) and every 7th other state, over 5 files
+    poke = poke_grid()
+    pole = [i for i, c in enumerate(poke) if c.contact_radius == c.theta == 0]
+    states = sorted(set(pole) | set(range(0, len(poke), 7)))
+    pids, pparams = _grid_rows(poke, POKE_FIELDS, states)
+    names = [f"poke_{j:03d}.h5" for j in range(5)]
+    for j, name in enumerate(names):
+        _write_rows(tmp_path / "poke" / name, pids[j::5], pparams[j::5], experiment="poke", seed=j)
+    pole_classes = [[i for i in pole if poke[i].depth == d] for d in sorted({poke[i].depth for i in pole})]
+
+    straddled_before = 0
+    for seed in range(5):
+        # repeats: the twins of a pair join the side of the pair's smaller id; all else as before
+        dm = TactileWrenchDataModule([str(tmp_path / "rep" / "forearm_*.h5")], seed=seed)
+        dm.setup()
+        sides = _side_by_id(dm, n)
+        assert all(len(s) == 1 for s in sides.values())  # repeats stay together, as before
+        assert all(sides[a] == sides[b] for a, b in FOREARM_TWINS)  # and so do the twins
+        base_val = set(split_indices(n, 0.2, seed, "forearm")[1].tolist())  # grouped split, all n states
+        expected = base_val - {b for _, b in FOREARM_TWINS} | {b for a, b in FOREARM_TWINS if a in base_val}
+        assert {i for i, s in sides.items() if s == {"val"}} == expected
+        straddled_before += sum((a in base_val) != (b in base_val) for a, b in FOREARM_TWINS)
+
+        # one pass: rows of the twins' file(s) keep the per-file split except the larger twin
+        once = TactileWrenchDataModule([str(tmp_path / "once" / "forearm_*.h5")], seed=seed)
+        once.setup()
+        sides = _side_by_id(once)
+        for a, b in FOREARM_TWINS:
+            assert sides[a] == sides[b] and len(sides[a]) == 1
+        moved = {(f"forearm_{b % 3:03d}.h5", b // 3) for _, b in FOREARM_TWINS}
+        legacy = set().union(
+            *(_legacy_val_rows(f"forearm_{j:03d}.h5", len(ids1[j::3]), seed) for j in range(3))
+        )
+        assert _val_rows(once) - moved == legacy - moved
+
+        # poking: each depth's 40 pole pokes on one side, across the 5 files and in any listing order
+        pk = TactileWrenchDataModule([str(tmp_path / "poke" / "poke_*.h5")], seed=seed)
+        pk.setup()
+        sides = _side_by_id(pk)
+        for c in pole_classes:
+            assert len(set().union(*(sides[i] for i in c))) == 1
+        rows = {int(i): (names[j], r) for j in range(5) for r, i in enumerate(pids[j::5])}
+        legacy = set().union(*(_legacy_val_rows(name, len(pids[j::5]), seed) for j, name in enumerate(names)))
+        twins = {rows[i] for c in pole_classes for i in c[1:]}  # all but the representative (smallest id)
+        assert _val_rows(pk) - twins == legacy - twins  # the other rows, representatives included: as before
+        straddled_before += sum(len({rows[i] in legacy for i in c}) > 1 for c in pole_classes)
+        again = TactileWrenchDataModule([str(tmp_path / "poke" / n_) for n_ in reversed(names)], seed=seed)
+        again.setup()
+        assert _val_rows(again) == _val_rows(pk)
+    assert straddled_before > 0  # the split by ids alone put twins on both sides

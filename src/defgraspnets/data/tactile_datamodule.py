@@ -32,7 +32,24 @@ over the shard files, the repeats of a state lie in different files, so the grou
   grid generated once) has one reading per state, so grouping changes nothing; every shard file is
   split on its own, exactly as before repeats existed (:func:`split_indices`, a permutation of its
   rows seeded by ``(seed, crc32(file name))``), and the split of a shard does not depend on which
-  other shards are loaded.
+  other shards are loaded (save for the twins below).
+
+Identical commands under different ids (:func:`commanded_state_keys`). Two grid ids can command the
+same indenter state: in the forearm grid the twist psi = +0 and -0 (``sign * pi n / 24``, n = 0, both
+senses) at each of the 9 depths are the same pure press, ids ``1800 + 18 m`` and ``1809 + 18 m``
+(m = 0..8; both are read, one after the other, in the direction-0 shear path of that depth, and their
+repeats share that path's perturbation), so 9 pairs; in the poke grid the pole poke (rho = 0,
+theta = 0: contact at the pole, pushed along -z) is the same for all 40 phi, at each of the 5 depths,
+so 5 classes of 40 ids. No shear has distance 0. Such twins are a reading and its copy; on both sides
+of the split they would leak as the repeats would. Every reading therefore also gets a canonical key
+of its commanded state, computed from its command params and rounded to :data:`COMMAND_TOLERANCE`, and
+all readings of one key take the side of the key's *representative*: its reading with the smallest
+state id (nominal id with repeats, sample id without; ties by file path, then row). The base split
+above is unchanged, so data without such twins split exactly as before, and so do the representatives;
+only the other twins move, to their representative's side (the 80:20 proportion then holds up to the
+moved twins). Without repeats a twin in another shard file (the 40 pole pokes lie in different
+files) follows a representative that may lie in another file, so there the split of these rows, and
+only of these, depends on which shards of the experiment are loaded.
 
 Sample ids count within an experiment's grid (poke id 5 and forearm id 5 are different states), so
 states are grouped per experiment and never across them: the combined dataset's validation set is
@@ -60,8 +77,10 @@ from defgraspnets.data.tactile_schema import (
 )
 
 __all__ = [
+    "COMMAND_TOLERANCE",
     "TactileWrenchDataModule",
     "TactileWrenchDataset",
+    "commanded_state_keys",
     "grid_size",
     "has_repeats",
     "nominal_state_ids",
@@ -72,6 +91,11 @@ __all__ = [
 ]
 
 _REPEAT = PARAM_NAMES.index("repeat")
+_P = {name: PARAM_NAMES.index(name) for name in COMMAND_PARAM_NAMES}
+
+#: Step [m, rad, unit-vector components] to which :func:`commanded_state_keys` rounds the canonical
+#: coordinates of a command: commands that agree to it are one state (grid values differ by >= 1e-3).
+COMMAND_TOLERANCE = 1e-9
 
 
 def normalize_depth(depth, reference, depth_scale: float):
@@ -154,6 +178,76 @@ def nominal_state_ids(shard: TactileShard, n: int) -> np.ndarray:
     return ids
 
 
+def commanded_state_keys(params, experiment: str) -> np.ndarray:
+    """(N, K) canonical coordinates of every reading's commanded indenter state (module docstring).
+
+    Rows are equal exactly when the commands are the same physical state, up to
+    :data:`COMMAND_TOLERANCE` (the coordinates are rounded to it, -0 to +0):
+
+    * ``"poke"`` (:class:`~defgraspnets.tactile.indenters.PokeCommand`, a rotationally symmetric
+      sphere): the contact point's ``(rho cos phi, rho sin phi)`` on the hemisphere, the push direction
+      ``-(sin theta cos phi, sin theta sin phi, cos theta)`` and the depth; phi drops out at
+      rho = theta = 0.
+    * ``"forearm"`` (:class:`~defgraspnets.tactile.indenters.ForearmCommand`): the depth, the shear
+      vector ``s (cos phi_s, sin phi_s)`` and the twist psi, which fix the forearm's commanded motion;
+      psi = +0 and -0 are the same press, and the shear direction drops out at s = 0.
+
+    A row is NaN where a param it needs is not finite (not recorded), and every row of another
+    experiment is NaN: such readings are no one's twin.
+
+    Args:
+        params: (N, len(PARAM_NAMES)) the readings' params (``TactileSamples.params``).
+        experiment: the shards' ``experiment`` attribute.
+    """
+    p = np.asarray(params, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] < len(COMMAND_PARAM_NAMES):
+        raise ValueError(f"params must be (N, >= {len(COMMAND_PARAM_NAMES)}), got {p.shape}")
+    if experiment == "poke":
+        phi, rho, theta, depth = (p[:, _P[k]] for k in ("phi", "contact_radius", "theta", "depth"))
+        keys = np.stack(
+            [
+                rho * np.cos(phi),
+                rho * np.sin(phi),
+                np.sin(theta) * np.cos(phi),
+                np.sin(theta) * np.sin(phi),
+                np.cos(theta),
+                depth,
+            ],
+            axis=1,
+        )
+    elif experiment == "forearm":
+        depth, phi_s, s, psi = (p[:, _P[k]] for k in ("depth", "shear_direction", "shear_distance", "twist"))
+        phi_s = np.where(s == 0.0, 0.0, phi_s)  # no shear: its direction is not part of the state
+        keys = np.stack([depth, s * np.cos(phi_s), s * np.sin(phi_s), psi], axis=1)
+    else:
+        return np.full((len(p), 1), np.nan)
+    keys = np.round(keys / COMMAND_TOLERANCE) * COMMAND_TOLERANCE + 0.0  # + 0.0: -0 -> +0
+    keys[~np.isfinite(keys).all(axis=1)] = np.nan
+    return keys
+
+
+def _commanded_state_labels(keys: np.ndarray) -> np.ndarray:
+    """(N,) integer labels, equal for equal key rows; a NaN row is a label of its own."""
+    labels = np.arange(len(keys), dtype=np.int64) + len(keys)  # NaN rows: unique, above the others
+    known = np.isfinite(keys).all(axis=1)
+    if known.any():
+        _, inverse = np.unique(keys[known], axis=0, return_inverse=True)
+        labels[known] = inverse.ravel()
+    return labels
+
+
+def _join_twins(is_val, states, files, rows, keys) -> np.ndarray:
+    """``is_val`` with every commanded-state class (equal ``keys``) on its representative's side: the
+    reading with the smallest state id, then file rank, then row (module docstring)."""
+    labels = _commanded_state_labels(keys)
+    order = np.lexsort((rows, files, states, labels))
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = labels[order][1:] != labels[order][:-1]
+    side = np.zeros(labels.max() + 1 if len(labels) else 0, dtype=bool)
+    side[labels[order][first]] = is_val[order][first]
+    return side[labels]
+
+
 def _check_commands(shards: list[TactileShard], states: list[np.ndarray]) -> None:
     """The readings grouped as one state must share its command (the first params columns)."""
     commands = np.concatenate([s.samples.params[:, : len(COMMAND_PARAM_NAMES)] for s in shards])
@@ -175,27 +269,42 @@ def split_tactile_shards(
     Experiments with repeats are split as one block over their shards (:func:`split_groups` of
     :func:`nominal_state_ids`, key: the experiment name); the shards of experiments without repeats
     each on their own by rows (:func:`split_indices`, key: the file name), as before repeats existed.
+    Then the readings of one commanded state under different ids (:func:`commanded_state_keys`) join
+    the side of their representative, across the experiment's shards.
     """
     out: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(shards)
     by_experiment: dict[str, list[int]] = {}
     for j, shard in enumerate(shards):
         by_experiment.setdefault(shard.experiment, []).append(j)
     for experiment, members in by_experiment.items():
-        if not any(has_repeats(shards[j]) for j in members):
-            for j in members:
-                n = len(shards[j].samples)
-                out[j] = split_indices(n, val_fraction, seed, shards[j].path.name)
-            continue
-        n = grid_size(experiment)
-        states = [nominal_state_ids(shards[j], n) for j in members]
-        _check_commands([shards[j] for j in members], states)
-        train, _ = split_groups(np.concatenate(states), val_fraction, seed, experiment)
-        in_train = np.zeros(sum(map(len, states)), dtype=bool)
-        in_train[train] = True
+        group = [shards[j] for j in members]
+        if any(has_repeats(s) for s in group):
+            n = grid_size(experiment)
+            states = [nominal_state_ids(s, n) for s in group]
+            _check_commands(group, states)
+            _, val = split_groups(np.concatenate(states), val_fraction, seed, experiment)
+            is_val = np.zeros(sum(map(len, states)), dtype=bool)
+            is_val[val] = True
+        else:
+            states = [s.samples.sample_id.astype(np.int64) for s in group]
+            is_val = np.zeros(sum(map(len, states)), dtype=bool)
+            start = 0
+            for s, ids in zip(group, states):
+                _, val = split_indices(len(ids), val_fraction, seed, s.path.name)
+                is_val[start + val] = True
+                start += len(ids)
+        rank = {p: r for r, p in enumerate(sorted(str(s.path) for s in group))}
+        is_val = _join_twins(
+            is_val,
+            np.concatenate(states),
+            np.concatenate([np.full(len(ids), rank[str(s.path)]) for s, ids in zip(group, states)]),
+            np.concatenate([np.arange(len(ids)) for ids in states]),
+            commanded_state_keys(np.concatenate([s.samples.params for s in group]), experiment),
+        )
         start = 0
         for j, ids in zip(members, states):
-            rows = in_train[start : start + len(ids)]
-            out[j] = (np.flatnonzero(rows), np.flatnonzero(~rows))
+            rows = is_val[start : start + len(ids)]
+            out[j] = (np.flatnonzero(~rows), np.flatnonzero(rows))
             start += len(ids)
     return out
 

@@ -9,6 +9,14 @@ one indentation read at each of its depths; every forearm shear is one press at 
 the shear distances in order (the contact is dragged with Coulomb friction by the FEM engine), every
 twist one press followed by the twist angles. A path costs about as much as its deepest state alone.
 
+Both grids name a few states twice. In the forearm grid the twists psi = +0 and -0 of a depth
+(m / 400 m: ids 1800 + 18 m and 1809 + 18 m, m = 0..8) are the same pure press; twist 0 joins that
+depth's direction-0 shear path, which reads the press twice before its shears (9 pairs). In the poke
+grid the pole poke (rho = 0, theta = 0: pushed along -z at the pole) is the same for all 40 phi, 40
+paths per depth (5 states, 40 ids each). No shear has distance 0. The ids stay (shards, resumes and
+repeats name samples by them); the wrench CNN's split keeps such twins on one side
+(:func:`defgraspnets.data.tactile_datamodule.commanded_state_keys`).
+
 Repeats (thesis §3.3: "the forearm experiments are repeated 4 more times so that a total of 8640
 datapoints are collected"). The simulator is deterministic, so a plain repeat would reproduce the first
 pass bit for bit; here repeat k >= 1 of every forearm path presses a *re-placed* forearm, as a real
