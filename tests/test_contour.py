@@ -7,6 +7,8 @@ The force measure is the depth-only proxy F~ of eq. (4.6). The real closed loop 
 the FEM membrane sensor; this test checks the controller logic and geometry end to end.
 """
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -267,6 +269,33 @@ def test_controller_terms_and_no_contact_search():
         ContourParameters(0.01, 0.0, 1.5, 1.0)
     with pytest.raises(ValueError, match="rotation"):
         contour_following_step(pts, np.diag([2.0, 1, 1, 1]), 0.0, params)
+
+
+def test_alignment_rotation_turns_about_the_contact_so_the_contact_moves_by_eq_4_1_only():
+    """Eq. (4.2) turns the sensor over the contact: the contact centroid moves by exactly the tracking and
+    force terms of eq. (4.1), whatever theta is. Turning about the end-effector origin (``"origin"``, the
+    old behaviour) swings the contact by K_theta theta times the lever arm (~7 cm here, 18 cm on the
+    simulated sensor, where it pushed the membrane into a shelf's side panel at the corner)."""
+    params = ContourParameters(tracking_step=0.01, force_gain=0.002, alignment_gain=0.5, desired_force=5.0)
+    pose = looking_down([0.0, 0.0, 0.1])
+    line = np.linspace(-0.02, 0.02, 50)
+    pts = np.column_stack([0.01 + line, np.full(50, 0.005), 0.07 + 0.6 * line])  # edge tilted ~31 deg
+    world = pts @ pose[:3, :3].T + pose[:3, 3]
+    cmd = contour_following_step(pts, pose, force=3.0, params=params)
+    assert cmd.alignment_angle > 0.4
+    eq41 = 0.01 * cmd.tangent - 0.002 * (5.0 - 3.0) * cmd.normal
+    centroid_sensor = pts.mean(axis=0)
+    moved = cmd.rotation @ centroid_sensor + cmd.position
+    assert moved == pytest.approx(world.mean(axis=0) + eq41, abs=1e-12)
+    assert cmd.translation == pytest.approx(cmd.position - pose[:3, 3])
+    old = contour_following_step(pts, pose, 3.0, replace(params, rotation_pivot="origin"))
+    assert old.position == pytest.approx(pose[:3, 3] + eq41, abs=1e-12)
+    assert old.rotation == pytest.approx(cmd.rotation)
+    swing = np.linalg.norm(old.rotation @ centroid_sensor + old.position - moved)
+    lever = np.linalg.norm(world.mean(axis=0) - pose[:3, 3])
+    assert swing > 0.5 * params.alignment_gain * cmd.alignment_angle * lever
+    with pytest.raises(ValueError, match="rotation_pivot"):
+        replace(params, rotation_pivot="pole")
 
 
 def test_run_metrics_on_a_synthetic_log():

@@ -168,6 +168,30 @@ def test_curved_pipe_follower_moves_forward_along_the_pipe_like_on_the_straight_
     assert np.diff(s[np.argmax(curved.in_contact) :]).min() > -GAINS.tracking_step
 
 
+def test_shelf_corner_turn_keeps_the_force_bounded(sim):
+    """Fig. 4.7: wiping the shelf board's edge into the corner, the follower turns up the side panel's edge
+    without crushing the membrane into the panel.
+
+    Bound: along the board the loop holds F~_des at a steady true force F_0 and membrane displacement d_0
+    (the run's medians). When the panel appears, eq. (4.1) moves the contact by at most ~K_v (1 cm) before
+    the force term reacts, so the membrane is pushed in by less than d_0 + K_v and the force stays under
+    2 F_0. Fails when the alignment rotation turns about the end-effector origin (0.18 m behind the
+    pole): the 8 deg turn at the corner swings the membrane 26 mm into the panel (F = 10.6 N ~ 4.8 F_0)."""
+    scene = standard_scenes(pole_height(sim))["shelf_corner"]
+    run = run_contour_following(sim, scene, GAINS, steps=32)
+    assert run.stopped_early is None
+    assert run.metrics.contact_fraction == 1.0 and run.metrics.housing_contact_steps == 0
+    c = np.nonzero(run.in_contact)[0][3:]  # after the approach transient
+    disp = np.array([sim.observe(scene.sdf, pose).state.max_displacement for pose in run.poses[c]])
+    f0, d0 = np.median(run.normal_force[c]), np.median(disp)
+    assert 1.0 < f0 < 3.0
+    assert disp.max() < d0 + GAINS.tracking_step
+    assert run.normal_force.max() < 2.0 * f0
+    # it turned: the pole climbs the panel's vertical edge (x = 0.25 m) instead of stopping at the corner
+    pole = pole_positions(run, pole_height(sim))
+    assert pole[-1, 2] > 0.05 and abs(pole[-1, 0] - 0.25) < 0.03
+
+
 def test_indented_points_keep_the_contact_core_and_reject_bad_input():
     ref = np.full((3, 4), 0.2)
     depth = ref.copy()
