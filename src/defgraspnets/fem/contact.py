@@ -582,3 +582,82 @@ def commit_stick_stretch_kernel(
         if sn > eps:
             s0 = s * (eps / sn)
     stick_stretch[c] = s0
+
+
+# ---------------------------------------------------------------- friction lag (per problem, on the device)
+@wp.kernel
+def friction_lag_error_kernel(
+    normal_force: wp.array(dtype=wp.float64),
+    normal: wp.array(dtype=wp.vec3d),
+    lag_normal_force: wp.array(dtype=wp.float64),
+    lag_normal: wp.array(dtype=wp.vec3d),
+    friction: wp.array(dtype=wp.float64),
+    num_bodies: int,
+    slots_per_problem: int,
+    mask: wp.array(dtype=wp.int32),
+    largest: wp.array(dtype=wp.float64),
+    total: wp.array(dtype=wp.float64),
+    capacity: wp.array(dtype=wp.float64),
+):
+    """Per problem: largest and summed friction-capacity error of the lagged normal forces,
+    ``mu (|N - N_lag| + N |n - n_lag|)``, and the capacity ``sum mu N`` (outputs zeroed by the caller)."""
+    b, j = wp.tid()
+    if mask[b] == 0:
+        return
+    c = b * slots_per_problem + j
+    mu = friction[b * num_bodies + j % num_bodies]
+    n_force = normal_force[c]
+    error = mu * (wp.abs(n_force - lag_normal_force[c]) + n_force * wp.length(normal[c] - lag_normal[c]))
+    wp.atomic_max(largest, b, error)
+    wp.atomic_add(total, b, error)
+    wp.atomic_add(capacity, b, mu * n_force)
+
+
+@wp.kernel
+def friction_lag_residual_dots_kernel(
+    normal_force: wp.array(dtype=wp.float64),
+    lag_normal_force: wp.array(dtype=wp.float64),
+    last_residual: wp.array(dtype=wp.float64),
+    slots_per_problem: int,
+    mask: wp.array(dtype=wp.int32),
+    residual_dot_change: wp.array(dtype=wp.float64),
+    change_dot_change: wp.array(dtype=wp.float64),
+):
+    """Aitken's dot products per problem: with the lag residual r = N - N_lag and its change
+    dr = r - r_last, ``r_last . dr`` and ``dr . dr`` (outputs zeroed by the caller)."""
+    b, j = wp.tid()
+    if mask[b] == 0:
+        return
+    c = b * slots_per_problem + j
+    r_last = last_residual[c]
+    change = (normal_force[c] - lag_normal_force[c]) - r_last
+    wp.atomic_add(residual_dot_change, b, r_last * change)
+    wp.atomic_add(change_dot_change, b, change * change)
+
+
+@wp.kernel
+def friction_relag_kernel(
+    normal_force: wp.array(dtype=wp.float64),
+    normal: wp.array(dtype=wp.vec3d),
+    lag_normal_force: wp.array(dtype=wp.float64),
+    lag_normal: wp.array(dtype=wp.vec3d),
+    last_residual: wp.array(dtype=wp.float64),
+    slots_per_problem: int,
+    mask: wp.array(dtype=wp.int32),
+    accelerate: wp.array(dtype=wp.int32),
+    relaxation: wp.array(dtype=wp.float64),
+):
+    """Re-lag the masked problems: N_lag <- N and n_lag <- n; where ``accelerate`` is set,
+    N_lag <- max(N_lag + w (N - N_lag), 0) with the problem's Aitken factor w, and r_last <- N - N_lag."""
+    b, j = wp.tid()
+    if mask[b] == 0:
+        return
+    c = b * slots_per_problem + j
+    n_force = normal_force[c]
+    if accelerate[b] != 0:
+        r = n_force - lag_normal_force[c]
+        last_residual[c] = r
+        lag_normal_force[c] = wp.max(lag_normal_force[c] + relaxation[b] * r, f64(0.0))
+    else:
+        lag_normal_force[c] = n_force
+    lag_normal[c] = normal[c]

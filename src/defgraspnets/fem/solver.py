@@ -438,7 +438,8 @@ class QuasiStaticSolver:
         self._lag_force = wp.zeros(nc, dtype=wp.float64, device=dev)
         self._lag_normal = wp.zeros(nc, dtype=wp.vec3d, device=dev)
         # Aitken relaxation of stale re-lags (see _relag_friction): last lag residual and factor per problem
-        self._relag_residual = np.zeros((self.batch_size, nc // max(self.batch_size, 1)))
+        self._relag_residual = wp.zeros(nc, dtype=wp.float64, device=dev)
+        self._relag_relaxation = wp.zeros(B, dtype=wp.float64, device=dev)  # w of this re-lag, per problem
         self._relag_omega = np.ones(self.batch_size)
         self._relag_has_residual = np.zeros(self.batch_size, dtype=bool)
         self._stick_stretch = wp.zeros(nc, dtype=wp.vec3d, device=dev)
@@ -855,17 +856,34 @@ class QuasiStaticSolver:
     def _friction_inconsistent(self, mask: np.ndarray, tol: np.ndarray) -> np.ndarray:
         """Problems in ``mask`` whose friction capacities, computed from lagged normal forces, are not
         consistent with their current normal forces: some contact's capacity error ``mu (|N - N_lag| +
-        N |n - n_lag|)`` exceeds ``tol`` and the summed error exceeds ``friction_rtol sum mu N``."""
+        N |n - n_lag|)`` exceeds ``tol`` and the summed error exceeds ``friction_rtol sum mu N``. Reduced per
+        problem on the device: only three numbers per problem come back."""
         if not self.num_bodies or not np.any(self._friction[mask] > 0):
             return np.zeros(self.batch_size, dtype=bool)
         self._contact_state(self._positions, self._travel)
-        B, S = self.batch_size, self.num_surface
-        mu = np.repeat(self._friction, S, axis=0).reshape(-1)
-        nf, nn = self._c_force.numpy(), self._c_normal.numpy()
-        lf, ln = self._lag_force.numpy(), self._lag_normal.numpy()
-        error = (mu * (np.abs(nf - lf) + nf * np.linalg.norm(nn - ln, axis=1))).reshape(B, -1)
-        allowed = self.options.friction_rtol * (mu * nf).reshape(B, -1).sum(axis=1)
-        return mask & (error.max(axis=1) > tol) & (error.sum(axis=1) > allowed)
+        largest, total, capacity = self._scratch[2], self._scratch[3], self._scratch[4]
+        for a in (largest, total, capacity):
+            a.zero_()
+        wp.launch(
+            ck.friction_lag_error_kernel,
+            dim=(self.batch_size, self.num_surface * self.num_bodies),
+            inputs=[
+                self._c_force,
+                self._c_normal,
+                self._lag_force,
+                self._lag_normal,
+                self._bodies.friction,
+                self.num_bodies,
+                self.num_surface * self.num_bodies,
+                self._active_array(mask),
+                largest,
+                total,
+                capacity,
+            ],
+            device=self.device,
+        )
+        allowed = self.options.friction_rtol * capacity.numpy()
+        return mask & (largest.numpy() > tol) & (total.numpy() > allowed)
 
     def _relag_friction(self, mask: np.ndarray, accelerate: np.ndarray | None = None):
         """Lagged normal forces and normals <- current ones, for the problems in ``mask``.
@@ -876,36 +894,57 @@ class QuasiStaticSolver:
         residual ``r_k = N - N_lag`` and ``w_k = -w_{k-1} r_{k-1}.(r_k - r_{k-1}) / |r_k - r_{k-1}|^2``
         (clipped to [0.5, 4], 1 at the first re-lag of an increment), then clamped at N >= 0. The plain
         re-lag (w = 1) contracts only about 2x per re-lag on tilted grasps, where friction carries the
-        load; the relaxation extrapolates that geometric sequence towards its limit.
+        load; the relaxation extrapolates that geometric sequence towards its limit. Runs on the device;
+        only the two dot products per accelerated problem come back to the host.
         """
         if not self.num_bodies or not np.any(self._friction[mask] > 0):
             return
         self._contact_state(self._positions, self._travel)
-        B = self.batch_size
-        m = np.repeat(mask, self.num_surface * self.num_bodies)  # slot order (b, s, k)
-        lf, ln = self._lag_force.numpy(), self._lag_normal.numpy()
-        nf = self._c_force.numpy()
-        new = nf.copy()
-        if accelerate is not None and (accelerate & mask).any():
-            r = (nf - lf).reshape(B, -1)
-            acc = accelerate & mask
+        slots = self.num_surface * self.num_bodies
+        acc = mask & (accelerate if accelerate is not None else False)
+        if acc.any():
             prev = acc & self._relag_has_residual
             if prev.any():
-                dr = r[prev] - self._relag_residual[prev]
-                den = np.einsum("ij,ij->i", dr, dr)
-                num = np.einsum("ij,ij->i", self._relag_residual[prev], dr)
+                num, den = self._scratch[2], self._scratch[3]
+                num.zero_()
+                den.zero_()
+                wp.launch(
+                    ck.friction_lag_residual_dots_kernel,
+                    dim=(self.batch_size, slots),
+                    inputs=[
+                        self._c_force,
+                        self._lag_force,
+                        self._relag_residual,
+                        slots,
+                        self._active_array(prev),
+                        num,
+                        den,
+                    ],
+                    device=self.device,
+                )
+                num, den = num.numpy()[prev], den.numpy()[prev]
                 with np.errstate(divide="ignore", invalid="ignore"):
                     w = np.where(den > 0, -self._relag_omega[prev] * num / den, 1.0)
                 self._relag_omega[prev] = np.clip(np.nan_to_num(w, nan=1.0), 0.5, 4.0)
             self._relag_omega[acc & ~self._relag_has_residual] = 1.0
-            self._relag_residual[acc] = r[acc]
             self._relag_has_residual[acc] = True
-            w = np.repeat(np.where(acc, self._relag_omega, 1.0), self.num_surface * self.num_bodies)
-            new = np.maximum(lf + w * (nf - lf), 0.0)
-        lf[m] = new[m]
-        ln[m] = self._c_normal.numpy()[m]
-        self._lag_force.assign(lf)
-        self._lag_normal.assign(ln)
+        self._relag_relaxation.assign(np.where(acc, self._relag_omega, 1.0))
+        wp.launch(
+            ck.friction_relag_kernel,
+            dim=(self.batch_size, slots),
+            inputs=[
+                self._c_force,
+                self._c_normal,
+                self._lag_force,
+                self._lag_normal,
+                self._relag_residual,
+                slots,
+                self._active_array(mask),
+                self._active_array(acc),
+                self._relag_relaxation,
+            ],
+            device=self.device,
+        )
 
     # ------------------------------------------------------------------ loads at a load fraction
     def _apply_increment(self, lam: np.ndarray, start: dict, end: dict, mask: np.ndarray):
