@@ -2,6 +2,7 @@
 
     python scripts/benchmark_fem.py                                   # one ramp, 2-core CPU goal <= 10 s
     python scripts/benchmark_fem.py device=cuda num_grasps=100        # GPU goal: 100 ramps <= 30 s
+    python scripts/benchmark_fem.py profile_phases=true               # + seconds per Newton phase
 
 The first (cold) call compiles and loads the Warp kernels; the timed run is a second, warm run on a fresh
 solver. Config: configs/benchmark_fem.yaml.
@@ -115,6 +116,16 @@ def main(cfg: DictConfig) -> None:
             )
 
     squeeze_ramp(solver, cfg.max_force, cfg.steps, progress=cfg.progress, on_step=record_step)
+    if cfg.profile_phases:
+        # a second run of the same ramp on a fresh solver, every phase synchronized and timed
+        from defgraspnets.fem.profiling import PhaseTimer
+
+        solver = make_squeeze_solver(mesh, grasps, material, cfg.friction, device=device, options=options)
+        with PhaseTimer(solver) as phases:
+            squeeze_ramp(solver, cfg.max_force, cfg.steps, progress=cfg.progress)
+        record["phases"] = phases.summary()
+        out.write_text(json.dumps(record, indent=2) + "\n")
+        print("phases [s]:", {k: v["seconds"] for k, v in record["phases"].items() if k != "wall_seconds"})
     print(
         json.dumps(
             {

@@ -1,5 +1,6 @@
 """scripts/benchmark_fem.py on CPU: a tiny squeeze benchmark writes a complete JSON (per-step timings,
-per-grasp Newton iterations and status), and a misspelled key is named."""
+per-grasp Newton iterations and status, seconds per solver phase), and a misspelled key is named; the
+phase timer counts what the solver does and leaves it as it was."""
 
 import json
 import subprocess
@@ -7,6 +8,12 @@ import sys
 from pathlib import Path
 
 import numpy as np
+
+from defgraspnets import fem
+from defgraspnets.fem.profiling import PHASES, PhaseTimer
+from defgraspnets.grasp.datagen import structured_box
+from defgraspnets.grasp.sampler import sample_antipodal_grasps
+from defgraspnets.grasp.squeeze import make_squeeze_solver, squeeze_ramp
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "benchmark_fem.py"
@@ -26,6 +33,7 @@ def test_benchmark_fem_writes_per_step_and_per_grasp_records(tmp_path):
         "steps=3",
         "youngs_modulus=1e6",
         "linear_solver=dense",
+        "profile_phases=true",
     )
     assert run.returncode == 0, run.stderr[-2000:]
     record = json.loads((tmp_path / "fem.json").read_text())
@@ -40,6 +48,27 @@ def test_benchmark_fem_writes_per_step_and_per_grasp_records(tmp_path):
     assert record["converged"] == 2  # a stiff cube squeezed by two pads: both ramps reach 15 N
     assert abs(record["grasp_force_reached_n"] - 15.0) < 1e-4
     assert record["machine"]["device"] == "cpu" and record["seconds"] > 0
+    # the profiled second run: every phase ran, and the phases and the rest add up to its wall time
+    phases = record["phases"]
+    assert all(phases[p]["calls"] > 0 for p in PHASES)
+    assert phases["linear_solve"]["calls"] >= per_grasp.max()
+    total = sum(v["seconds"] for k, v in phases.items() if k != "wall_seconds")
+    assert abs(total - phases["wall_seconds"]) < 1e-3 and phases["other"]["seconds"] >= 0
+
+
+def test_phase_timer_counts_one_linear_solve_per_newton_iteration_and_restores_the_solver():
+    mesh = structured_box((0.03, 0.03, 0.03), (3, 3, 3), name="cube")
+    grasps = sample_antipodal_grasps(mesh, num_grasps=1, seed=0)
+    solver = make_squeeze_solver(mesh, grasps, fem.Material(1e6, 0.3, 1000.0), 0.7, device="cpu")
+    with PhaseTimer(solver) as phases:
+        eqs = squeeze_ramp(solver, 6.0, 2)
+    assert all(eq.converged.all() for eq in eqs)
+    newton = sum(int(eq.newton_iterations[0]) for eq in eqs)
+    assert phases.calls["linear_solve"] == newton > 0
+    assert phases.calls["commit"] >= 2  # at least one converged increment per step
+    assert not any(name in solver.__dict__ for name in PHASES.values())  # the class's methods again
+    summary = phases.summary()
+    assert summary["wall_seconds"] >= summary["linear_solve"]["seconds"] > 0
 
 
 def test_benchmark_fem_names_a_misspelled_key(tmp_path):

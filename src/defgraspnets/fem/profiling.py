@@ -1,0 +1,81 @@
+"""Where a solve spends its time: synchronized wall-clock seconds per phase of the Newton loop.
+
+    with PhaseTimer(solver) as phases:
+        squeeze_ramp(solver, 15.0, 50)
+    phases.summary()  # {"linear_solve": {"seconds": ..., "calls": ...}, ...}
+
+Each phase is one method of :class:`~defgraspnets.fem.solver.QuasiStaticSolver`; the timer wraps it on
+this instance only (the class and other solvers are untouched) and synchronizes the device (Warp and, on
+CUDA, PyTorch's dense solves) before and after every call, so the seconds are the phase's own and not
+whatever asynchronous work happened to finish inside it. The synchronization costs time itself: profile
+a run, then time it without the timer (``scripts/benchmark_fem.py profile_phases=true`` records both).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+
+import warp as wp
+
+#: phase name -> solver method: everything of a Newton iteration but its bookkeeping
+PHASES = {
+    "assemble": "_assemble",  # energy gradient and Hessian (elasticity, contact, loads) and constraints
+    "linear_solve": "_linear_solve",  # the Newton step (dense / sparse direct / CG / AMG)
+    "line_search": "_line_search",  # Armijo backtracking: trial states and their energies
+    "friction_relag": "_relag_friction",  # lagged normal forces (Aitken relaxation)
+    "friction_check": "_friction_inconsistent",  # lag consistency of converged states
+    "start_increment": "_start_increment",  # predictor and loads of a load increment
+    "commit": "_commit",  # accept converged states (friction memory, predictor data)
+}
+
+
+class PhaseTimer:
+    """Context manager timing the :data:`PHASES` of one solver (module docstring)."""
+
+    def __init__(self, solver):
+        self.solver = solver
+        self.seconds: dict[str, float] = defaultdict(float)
+        self.calls: dict[str, int] = defaultdict(int)
+        self.wall = 0.0
+        self._start = 0.0
+
+    def _sync(self):
+        wp.synchronize_device(self.solver.device)
+        if self.solver.device.is_cuda:
+            import torch
+
+            torch.cuda.synchronize(wp.device_to_torch(self.solver.device))
+
+    def _wrap(self, phase: str, method):
+        def timed(*args, **kwargs):
+            self._sync()
+            start = time.perf_counter()
+            try:
+                return method(*args, **kwargs)
+            finally:
+                self._sync()
+                self.seconds[phase] += time.perf_counter() - start
+                self.calls[phase] += 1
+
+        return timed
+
+    def __enter__(self) -> PhaseTimer:
+        for phase, name in PHASES.items():
+            setattr(self.solver, name, self._wrap(phase, getattr(self.solver, name)))
+        self._sync()
+        self._start = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._sync()
+        self.wall += time.perf_counter() - self._start
+        for name in PHASES.values():
+            self.solver.__dict__.pop(name, None)  # back to the class's methods
+
+    def summary(self) -> dict:
+        """Seconds and calls per phase, the rest of the wall time as ``"other"``, and the wall time."""
+        out = {p: {"seconds": round(self.seconds[p], 4), "calls": self.calls[p]} for p in PHASES}
+        out["other"] = {"seconds": round(self.wall - sum(self.seconds.values()), 4), "calls": 0}
+        out["wall_seconds"] = round(self.wall, 4)
+        return out
