@@ -54,7 +54,6 @@ log = logging.getLogger(__name__)
 
 
 LINEAR_SOLVERS = ("auto", "cg", "amg", "direct", "dense")
-LM_START, LM_MAX = 1e-3, 1.0  # Levenberg-Marquardt damping of a rejected exact step, in units of E h
 # "auto" factors problems densely up to these many unknowns: on CUDA 4000 vertices (1.2 GB per factor);
 # on the CPU 300 vertices, where dense and AMG-CG break even (2-core CPU, 4 squeeze ramps x 10 steps: 125
 # vertices 2.2 vs 5.2 s (12 ramps x 8), 343 vertices 4.7 vs 4.1 s, 729 vertices 22.0 vs 9.1 s)
@@ -117,12 +116,7 @@ class SolverOptions:
             one: near a stable equilibrium the assembled Hessian is positive definite even where compressed
             elements are not. Measured on a fingertip dimpling the membrane: 8 % fewer Newton iterations (the
             slow convergence there has another cause, still open). A step that is not a descent direction
-            or needs backtracking is retried with Levenberg-Marquardt damping on the exact Hessian,
-            ``LM_START`` = 1e-3 to ``LM_MAX`` = 1 times E h on the diagonal (x10 per rejection, /3 per
-            accepted full step); past ``LM_MAX`` the problem returns to the projected Hessian for the rest
-            of the increment. Near a crease of a soft solid (a near-zero negative eigenvalue) the projected
-            Hessian overestimates the curvature and Newton crawls, while the damped exact step converges:
-            first 8 benchmark grasps at 20 kPa, 7 converge against 5 undamped.
+            or needs backtracking returns the problem to the projected Hessian for the rest of the increment.
         query_distance: search radius [m] of triangle-mesh bodies' signed distance queries.
         record_tet_stress: keep the per-tet Cauchy stress in results (B x M x 9 floats).
     """
@@ -498,9 +492,6 @@ class QuasiStaticSolver:
         if D:
             shift[:, N:, 0] = self.options.regularization * self._youngs_np[:, None] * self.mesh.diameter
         self._diag_shift = wp.array(shift.reshape(-1, 3), dtype=wp.vec3d, device=dev)
-        self._diag_shift_base = shift
-        self._damping_scale = np.zeros_like(shift)  # Levenberg-Marquardt unit per row: E h [N/m]
-        self._damping_scale[:, :N, :] = (self._youngs_np[:, None] * self.mesh.vertex_size[None])[..., None]
 
     def _body(self, name: str) -> int:
         for k, b in enumerate(self.bodies):
@@ -1186,7 +1177,6 @@ class QuasiStaticSolver:
         stale = np.zeros(B, dtype=bool)
         self._relag_has_residual[mask] = False
         exact = np.zeros(B, dtype=np.int32)
-        damping = np.zeros(B)  # Levenberg-Marquardt factor of the exact Hessian, per problem
         self._exact_hessian.zero_()
         for _ in range((o.max_newton_iterations + 1) * (o.max_friction_relags + 1)):
             self._relag_friction(relag & working, accelerate=stale if o.friction_relaxation else None)
@@ -1278,19 +1268,9 @@ class QuasiStaticSolver:
                 alpha = self._step.numpy()
                 lost = working & (exact == 1) & ((failed == 1) | (alpha < 1.0))
                 failed[lost] = 0
-                before = damping.copy()
-                damp = lost & (damping < LM_MAX)
-                damping[damp] = np.maximum(10.0 * damping[damp], LM_START)
-                exact[lost & ~damp] = 0
-                damping[lost & ~damp] = 0.0
-                good = working & ~lost & (alpha == 1.0) & (res < previous)
-                damping[good & (exact == 1)] /= 3.0
-                damping[damping < 0.1 * LM_START] = 0.0
-                exact[good] = 1
+                exact[lost] = 0
+                exact[working & ~lost & (alpha == 1.0) & (res < previous)] = 1
                 self._exact_hessian.assign(exact)
-                if np.any(damping != before):
-                    shift = self._diag_shift_base + damping[:, None, None] * self._damping_scale
-                    self._diag_shift.assign(shift.reshape(-1, 3))
             # a failed line search this close to the tolerance is round-off: accept the state
             stalled = failed == 1
             near = stalled & (residual <= 1e3 * (o.rtol * scale + atol))
@@ -1309,8 +1289,6 @@ class QuasiStaticSolver:
             status[esc] = SolveStatus.ESCAPED
             working &= ~esc
         self._exact_hessian.zero_()
-        if np.any(damping):
-            self._diag_shift.assign(self._diag_shift_base.reshape(-1, 3))
         return ok, status, iters, lin_iters, residual
 
     def _linear_solve(self, rtol: float) -> tuple[int, float]:
