@@ -115,6 +115,23 @@ def test_regularized_em_objective_never_decreases_on_degenerate_features():
     assert (np.linalg.eigvalsh(model.covariances) > 0).all()
 
 
+def test_restarts_keep_the_best_baum_welch_run_and_never_fit_worse_than_one_run():
+    # an over-complete model (5 states on 3-state data) has many local maxima of the likelihood
+    data = demos(true_hmm(), [60, 80, 70], seed=3)
+    single = GaussianHMM(5, covariance_regularization=1e-3, random_state=3).fit(data)
+    multi = GaussianHMM(5, covariance_regularization=1e-3, random_state=3, n_restarts=8).fit(data)
+    objectives = np.array(multi.restart_objectives)
+    assert objectives.size == 8 and len(single.restart_objectives) == 1
+    # run 0 is the single-run fit; the kept parameters are those of the best run
+    assert objectives[0] == pytest.approx(single.restart_objectives[0], rel=1e-12)
+    assert multi.score(data) + multi._log_prior() == pytest.approx(objectives.max(), rel=1e-12)
+    assert objectives.max() >= objectives[0]
+    assert objectives.max() > single.score(data) + single._log_prior() + 5.0  # measured: -339.2 vs -350.3
+    assert multi.objective_history[-1] <= objectives.max() + 1e-9  # histories are those of the kept run
+    with pytest.raises(ValueError, match="n_restarts"):
+        GaussianHMM(2, n_restarts=0)
+
+
 def test_baum_welch_matches_hmmlearn_from_the_same_initialization():
     hmm = pytest.importorskip("hmmlearn.hmm", reason="hmmlearn (test-only reference) is not installed")
     truth = true_hmm()

@@ -31,10 +31,19 @@ Initialization follows the thesis where it is specific: ``pi`` uniform, ``mu_i``
 centres (k-means++ seeding, best of ``n_init`` runs). The thesis initializes covariances
 randomly; here every ``Sigma_i`` starts as the covariance of all data plus ``psi I``
 (deterministic given the seed, and never ill-conditioned), and ``A`` starts uniform.
+
+Restarts: EM only finds a local maximum. :meth:`GaussianHMM.fit_restarts` runs Baum-Welch from
+``n_restarts`` initializations and returns every fitted run; with ``n_restarts = R > 1``,
+:meth:`GaussianHMM.fit` keeps the run with the highest final objective (training data only). The
+first run is exactly the single-run fit (k-means best of ``n_init``); the others draw their k-means++
+seeds from the same generator and run k-means once each, so they start from different clusterings.
+Hence the kept objective is never below the single run's. A caller may select among the runs of
+:meth:`GaussianHMM.fit_restarts` by another training-data criterion.
 """
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -146,12 +155,16 @@ class GaussianHMM:
             feature^2 times a count of samples); see the module docstring.
         max_iter: maximum EM iterations.
         tol: stop when the total log-likelihood improves by less than this.
-        n_init: k-means restarts for the initial means.
-        random_state: seed of the k-means initialization.
+        n_init: k-means restarts for the initial means (of the first Baum-Welch run).
+        n_restarts: Baum-Welch runs from different k-means initializations; the run with the highest
+            final objective is kept (see the module docstring). 1 = a single run.
+        random_state: seed of the k-means initializations.
         start_prob, transition, means, covariances: the parameters ``pi`` (N,), ``A`` (N, N),
             ``mu`` (N, D), ``Sigma`` (N, D, D), set by :meth:`fit` or :meth:`set_parameters`.
         log_likelihood_history: ``log p(O | Lambda)`` evaluated at the start of each iteration.
         objective_history: the same plus the covariance log-prior (the EM-monotone objective).
+        restart_objectives: objective of the final parameters of every Baum-Welch run of the last
+            :meth:`fit` (one per restart; the kept run is the argmax).
     """
 
     n_states: int
@@ -159,6 +172,7 @@ class GaussianHMM:
     max_iter: int = 100
     tol: float = 1e-4
     n_init: int = 10
+    n_restarts: int = 1
     random_state: int | None = None
     start_prob: np.ndarray | None = field(default=None, repr=False)
     transition: np.ndarray | None = field(default=None, repr=False)
@@ -166,6 +180,7 @@ class GaussianHMM:
     covariances: np.ndarray | None = field(default=None, repr=False)
     log_likelihood_history: list[float] = field(default_factory=list, repr=False)
     objective_history: list[float] = field(default_factory=list, repr=False)
+    restart_objectives: list[float] = field(default_factory=list, repr=False)
 
     def __post_init__(self):
         if int(self.n_states) != self.n_states or self.n_states < 1:
@@ -174,6 +189,8 @@ class GaussianHMM:
             raise ValueError(f"covariance_regularization must be >= 0, got {self.covariance_regularization}")
         if self.max_iter < 0:
             raise ValueError(f"max_iter must be >= 0, got {self.max_iter}")
+        if int(self.n_restarts) != self.n_restarts or self.n_restarts < 1:
+            raise ValueError(f"n_restarts must be a positive integer, got {self.n_restarts}")
 
     # ------------------------------------------------------------------ parameters
 
@@ -207,13 +224,22 @@ class GaussianHMM:
         self.start_prob, self.transition, self.means, self.covariances = pi, a, mu, cov
         return self
 
-    def initialize(self, sequences: Sequence[np.ndarray]) -> GaussianHMM:
-        """Uniform ``pi`` and ``A``, k-means means, pooled data covariance (+ psi I) for every state."""
+    def initialize(
+        self,
+        sequences: Sequence[np.ndarray],
+        rng: np.random.Generator | None = None,
+        n_init: int | None = None,
+    ) -> GaussianHMM:
+        """Uniform ``pi`` and ``A``, k-means means, pooled data covariance (+ psi I) for every state.
+
+        ``rng`` (default: a new generator seeded with ``random_state``) seeds k-means, ``n_init``
+        (default ``self.n_init``) is its number of runs.
+        """
         x, mask = _pad(sequences)
         data = x[mask]
         n, d = self.n_states, data.shape[1]
-        rng = np.random.default_rng(self.random_state)
-        means = kmeans(data, n, rng, n_init=self.n_init)
+        rng = np.random.default_rng(self.random_state) if rng is None else rng
+        means = kmeans(data, n, rng, n_init=self.n_init if n_init is None else n_init)
         cov = np.cov(data.T, bias=True).reshape(d, d) + self.covariance_regularization * np.eye(d)
         if (np.linalg.eigvalsh(cov) <= 0).any():
             raise ValueError(
@@ -353,16 +379,46 @@ class GaussianHMM:
 
         Args:
             sequences: the M demonstrations.
-            initialize: run :meth:`initialize` first; False starts from the current parameters.
+            initialize: run :meth:`initialize` first (``n_restarts`` times, keeping the best run);
+                False runs once from the current parameters.
         """
         x, mask = _pad(sequences)
-        if initialize:
-            self.initialize(sequences)
-        else:
+        if not initialize:
             self._require_fitted()
             self._check_data(x)
         if mask.sum() < self.n_states:
             raise ValueError(f"{mask.sum()} observations cannot train {self.n_states} states")
+        if not initialize:
+            self._baum_welch(x, mask)
+            self.restart_objectives = [self._objective(x, mask)]
+            return self
+        runs = self.fit_restarts(sequences)
+        objectives = [r.restart_objectives[0] for r in runs]
+        best = runs[int(np.argmax(objectives))]
+        for k in self._STATE:
+            setattr(self, k, getattr(best, k))
+        self.restart_objectives = objectives
+        return self
+
+    def fit_restarts(self, sequences: Sequence[np.ndarray]) -> list[GaussianHMM]:
+        """Baum-Welch from ``n_restarts`` initializations (see the module docstring); returns one fitted
+        copy per run, run 0 being the single-run fit. Each copy's ``restart_objectives`` holds its own final
+        objective. ``self`` is left unchanged."""
+        x, mask = _pad(sequences)
+        if mask.sum() < self.n_states:
+            raise ValueError(f"{mask.sum()} observations cannot train {self.n_states} states")
+        rng = np.random.default_rng(self.random_state)
+        runs = []
+        for r in range(self.n_restarts):
+            run = copy.deepcopy(self)
+            # run 0 is the single-run fit (k-means best of n_init); later runs: one k-means run each
+            run.initialize(sequences, rng=rng, n_init=self.n_init if r == 0 else 1)
+            run._baum_welch(x, mask)
+            run.restart_objectives = [run._objective(x, mask)]
+            runs.append(run)
+        return runs
+
+    def _baum_welch(self, x: np.ndarray, mask: np.ndarray) -> None:
         self.log_likelihood_history, self.objective_history = [], []
         for _ in range(self.max_iter):
             prior = self._log_prior()
@@ -372,7 +428,20 @@ class GaussianHMM:
             hist = self.log_likelihood_history
             if len(hist) >= 2 and abs(hist[-1] - hist[-2]) < self.tol:
                 break
-        return self
+
+    def _objective(self, x: np.ndarray, mask: np.ndarray) -> float:
+        """``log p(O | Lambda) + log p(Sigma)`` of the current parameters (the histories hold the values
+        before each update)."""
+        return float(self._forward_backward(x, mask, backward=False)[4].sum()) + self._log_prior()
+
+    _STATE = (
+        "start_prob",
+        "transition",
+        "means",
+        "covariances",
+        "log_likelihood_history",
+        "objective_history",
+    )
 
     def sample(self, length: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """Draw one sequence of ``length`` observations; returns (observations (T, D), states (T,))."""
