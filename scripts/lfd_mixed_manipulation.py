@@ -47,6 +47,7 @@ def main(cfg: DictConfig) -> dict:
         sim, world, teacher, n_demonstrations=cfg.n_demonstrations, n_rollouts=cfg.n_rollouts,
         n_states=cfg.n_states, rollout_steps=cfg.rollout_steps, seed=cfg.seed,
         regularization=cfg.hmm_regularization, yaw_tolerance=np.deg2rad(cfg.yaw_tolerance_deg),
+        n_restarts=cfg.hmm_restarts, mirror_demonstrations=tuple(cfg.mirror_demonstrations),
     )  # fmt: skip
     report = result["report"]
     report["wall_time_s"] = time.perf_counter() - t0

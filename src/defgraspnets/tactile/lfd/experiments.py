@@ -47,6 +47,7 @@ __all__ = [
     "Demonstration",
     "EdgeFollowingPolicy",
     "PolicyRollout",
+    "demonstration_action_error",
     "edge_following_demonstrations",
     "fit_edge_following_policy",
     "rollout_policy",
@@ -142,21 +143,54 @@ class EdgeFollowingPolicy:
         return self.normalizer.inverse_transform(full)[self.input_size :]
 
 
+def demonstration_action_error(hmm: GaussianHMM, sequences, input_size: int) -> float:
+    """How well the GMRa policy of ``hmm`` replays the demonstrations (training data only).
+
+    Each normalized demonstration ``[S, A]`` (T, D) of ``sequences`` is replayed from a fresh start: the
+    forward-variable GMR (eqs 5.17-5.18) predicts the actions from its inputs. Returns the squared action
+    error summed over the action dimensions, averaged over the steps and then over the demonstrations.
+    """
+    gmr = ForwardGMR.from_hmm(hmm, list(range(input_size)), list(range(input_size, hmm.n_features)))
+    errors = [
+        float(((gmr.predict(x[:, :input_size]).action - x[:, input_size:]) ** 2).sum(axis=1).mean())
+        for x in sequences
+    ]
+    return float(np.mean(errors))
+
+
 def fit_edge_following_policy(
     demonstrations: list[Demonstration],
     n_states: int = 2,
     regularization: float = 1e-3,
     seed: int = 0,
     dt: float = 1.0,
+    n_restarts: int = 1,
 ) -> EdgeFollowingPolicy:
-    """Normalize the demonstrations, fit the N-state HMM (Baum-Welch) and build the GMRa policy."""
+    """Normalize the demonstrations, fit the N-state HMM (Baum-Welch) and build the GMRa policy.
+
+    ``n_restarts > 1``: Baum-Welch from that many k-means initializations
+    (:meth:`~defgraspnets.tactile.lfd.hmm.GaussianHMM.fit_restarts`, run 0 is the single-run fit), keeping
+    the run whose policy best replays the demonstrated actions (:func:`demonstration_action_error`). EM
+    only finds local maxima, and the joint likelihood is dominated by the 9-D input density, so it does not
+    rank the policies: on the mixed-manipulation demonstrations the highest-likelihood run is no better
+    than a single run, while the best-replaying one separates the capsule and prism contact states.
+    """
     if len(demonstrations) < 1:
         raise ValueError("need at least one demonstration")
+    if int(n_restarts) != n_restarts or n_restarts < 1:
+        raise ValueError(f"n_restarts must be a positive integer, got {n_restarts}")
     data = [d.observations for d in demonstrations]
     normalizer = MinMaxNormalizer.fit(np.concatenate(data))
-    hmm = GaussianHMM(n_states, covariance_regularization=regularization, random_state=seed)
-    hmm.fit([normalizer.transform(x) for x in data])
+    sequences = [normalizer.transform(x) for x in data]
     d_in = demonstrations[0].inputs.shape[1]
+    hmm = GaussianHMM(
+        n_states, covariance_regularization=regularization, random_state=seed, n_restarts=n_restarts
+    )
+    if n_restarts == 1:
+        hmm.fit(sequences)
+    else:
+        runs = hmm.fit_restarts(sequences)
+        hmm = runs[int(np.argmin([demonstration_action_error(h, sequences, d_in) for h in runs]))]
     gmr = ForwardGMR.from_hmm(hmm, list(range(d_in)), list(range(d_in, d_in + 6)))
     return EdgeFollowingPolicy(normalizer, hmm, gmr, d_in, dt)
 

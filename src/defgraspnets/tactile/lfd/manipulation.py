@@ -45,12 +45,26 @@ less than ``max_prism_shift`` (default 0.02 m: rotated *in place*). The rigid ho
 failure of both.
 
 Teachers are scripted controllers with privileged object poses (the thesis's kinesthetic teacher),
-lowering at constant speed. Capsule: down to the push height (the dome's flank meets the object's top
-edge on the way), then push at that height along ``u + k_u (u - d)`` (``u`` the unit vector from the pole
-to the object, ``d`` the desired heading ``(-k_x x_o, 1)`` toward the corridor axis, ``x_o`` the object's
-offset), then retract upward after the object fell. Prism: down until the membrane is indented
-``delta_t``, then yaw rate ``-k_psi psi`` (psi the prism yaw modulo pi, clipped) at that indentation until
-aligned, then hold.
+lowering at constant speed. Capsule (default ``capsule_approach="above"``, thesis Fig. 5.8: the palm
+begins above the capsule and is lowered onto it): down until the membrane is indented ``delta_t``, then
+drag the pressed capsule (it sticks to the palm) along the desired heading ``d = (-k_x x_o, 1)`` toward
+the corridor axis (``x_o`` the object's offset) at that indentation, then retract upward after it fell.
+The alternative ``"behind"`` starts behind the capsule, lowers to the push height (the dome's flank meets
+the object's top edge on the way) and pushes at that height along ``u + k_u (u - d)`` (``u`` the unit
+vector from the pole to the object). Prism: down until the membrane is indented ``delta_t``, turning at
+the yaw rate ``-k_psi psi`` (psi the prism yaw modulo pi, clipped) from the first contact on
+(``rotate_on_contact``) until aligned, then hold.
+
+What the policy can learn is what the §5.3 input explains. Flank pushing a disc with the convex dome is
+unstable (the pusher-object offset grows), and the flank teacher's lateral corrections depend on ``u``,
+which the world-frame ``[c, lambda, e_1]`` of a small, nearly isotropic contact patch does not carry
+(a linear fit of the demonstrated lateral velocity on S explains ~20 % of its variance, on the privileged
+offset ~80 %): its policies pushed straight on, lost 22 of 50 capsules over seeds 0-9 (off-centre drift
+past the pusher or into a wall) and sometimes took the large capsules for the prism. A dragged capsule
+moves with the palm, so ``c`` locates it and the steering is a function of ``c_x`` (~85 % explained).
+A prism teacher that waits for ``delta_t`` before turning shows zero yaw rate at large ``psi`` while
+touching; GMR's per-state linear regression explains that with ``lambda`` and mis-predicts the yaw rate at
+the executed indentation (stopping short, or overshooting).
 
 Sensor resolution matters for the prism: its orientation reaches the policy only through ``e_1`` of the
 contact core. On the cap-12 membrane mesh ``e_1`` is off by 5-13 deg (median / 90th percentile) and the
@@ -76,6 +90,7 @@ from defgraspnets.tactile.sdf import BoxSDF, SignedDistance, UnionSDF
 
 __all__ = [
     "CAPSULES",
+    "CAPSULE_APPROACHES",
     "MANIPULATION_FEATURES",
     "PRISM",
     "ExtrudedFootprintSDF",
@@ -88,6 +103,7 @@ __all__ = [
     "demonstrate",
     "evaluate_success",
     "fit_manipulation_policy",
+    "mirror_start",
     "mixed_manipulation_experiment",
     "move_object",
     "rollout_manipulation",
@@ -98,6 +114,9 @@ __all__ = [
 MANIPULATION_FEATURES = ("centroid", "principal_variances", "e1")
 
 _G = 9.81
+
+#: How the teacher handles a capsule (:class:`TeacherParameters`).
+CAPSULE_APPROACHES = ("above", "behind")
 
 
 class ExtrudedFootprintSDF(SignedDistance):
@@ -368,6 +387,18 @@ class TeacherParameters:
         hold_steps: steps after the task is done (retract / hold).
         max_steps: a demonstration longer than this fails.
         align_tolerance: prism yaw at which the teacher stops rotating [rad].
+        capsule_approach: ``"above"`` — the palm starts above the capsule (thesis Fig. 5.8a-b), is lowered
+            onto it to ``indentation`` and drags the pressed capsule along ``d`` at ``push_speed`` (it sticks
+            to the palm, :func:`move_object`); ``"behind"`` — the palm starts behind it and pushes it with
+            the dome's flank at ``push_height`` along ``u + k_u (u - d)``. :func:`sample_start` places the
+            palm accordingly. Dragging needs the pressed capsule to stick (:func:`move_object`): on the
+            coarse cap-8 membrane too few contact columns touch the 10 mm capsule, it slips and the teacher
+            does not finish.
+        rotate_on_contact: prism: start turning at the first contact (pressing on to ``indentation``
+            meanwhile). Then the demonstrated yaw rate is ``-k_psi psi`` during the whole contact, a
+            function of the sensed orientation ``e_1``; turning only once ``indentation`` is reached also
+            shows zero yaw rate at large ``psi`` while pressing, which the per-state linear regression of GMR
+            explains with the patch size ``lambda`` and then mis-predicts at the executed indentation.
     """
 
     dt: float = 0.2
@@ -384,6 +415,14 @@ class TeacherParameters:
     hold_steps: int = 3
     max_steps: int = 60
     align_tolerance: float = np.deg2rad(1.0)
+    capsule_approach: str = "above"
+    rotate_on_contact: bool = True
+
+    def __post_init__(self):
+        if self.capsule_approach not in CAPSULE_APPROACHES:
+            raise ValueError(
+                f"capsule_approach must be one of {CAPSULE_APPROACHES}, got {self.capsule_approach!r}"
+            )
 
 
 @dataclass(frozen=True)
@@ -412,19 +451,27 @@ class ManipulationRun:
         )  # fmt: skip
 
 
-def sample_start(obj: ManipulationObject, palm: PalmGeometry, world: ManipulationWorld, rng, height=0.03):
+def sample_start(
+    obj: ManipulationObject, palm: PalmGeometry, world: ManipulationWorld, rng, height=0.03,
+    capsule_approach: str = "above",
+):  # fmt: skip
     """Random start (object pose (3,), sensor pose (4, 4)) in the task quadrant.
 
     Capsule: object at ``x ~ U(-0.015, 0.015)``, ``y ~ U(-0.21, -0.17)`` m, any yaw; the pole 30 mm above the
-    table behind the object (``-y``), placed so that the dome's flank meets the object's rear top edge when
-    the pole is 3 mm below that edge, with ``+-3`` mm noise.
+    table, ``capsule_approach="above"``: above the object (``+-3`` mm, thesis Fig. 5.8a); ``"behind"``: behind
+    the object (``-y``), placed so that the dome's flank meets the object's rear top edge when the pole is
+    3 mm below that edge, with ``+-3`` mm noise. Both draw the same random numbers.
     Prism: centroid ``x ~ U(-0.03, 0.03)``, ``y ~ U(-0.22, -0.18)``, yaw ``U(-40, 40)`` deg; the pole above it
     (``+-3`` mm).
     """
+    if capsule_approach not in CAPSULE_APPROACHES:
+        raise ValueError(f"capsule_approach must be one of {CAPSULE_APPROACHES}, got {capsule_approach!r}")
     if obj.kind == "capsule":
         pose = np.array([rng.uniform(-0.015, 0.015), rng.uniform(-0.21, -0.17), rng.uniform(-np.pi, np.pi)])
         ey = _extent_along(obj.shape, pose[2], np.array([0.0, 1.0]))
-        behind = ey + palm.section_radius(obj.height - 0.003, obj.height)
+        behind = (
+            ey + palm.section_radius(obj.height - 0.003, obj.height) if capsule_approach == "behind" else 0.0
+        )
         pole = [pose[0] + rng.uniform(-0.003, 0.003), pose[1] - behind + rng.uniform(-0.003, 0.003), height]
     else:
         pose = np.array(
@@ -502,15 +549,18 @@ def _teacher(palm: PalmGeometry, world: ManipulationWorld, obj: ManipulationObje
         twist = np.zeros(6)
         pole = palm.pole(pose)
         indent = obs.state.max_displacement if obs.in_contact else 0.0
+        flank = obj.kind == "capsule" and tp.capsule_approach == "behind"
         if state["phase"] == "lower":
-            if obj.kind == "capsule" and pole[2] <= tp.push_height + 1e-9:
+            if flank and pole[2] <= tp.push_height + 1e-9:
                 state["phase"] = "push"
-            elif obj.kind == "prism" and indent >= tp.indentation:
-                state["phase"] = "rotate"
+            elif not flank and (
+                indent >= tp.indentation or (obj.kind == "prism" and tp.rotate_on_contact and obs.in_contact)
+            ):
+                state["phase"] = "rotate" if obj.kind == "prism" else "drag"
             else:
                 twist[2] = -min(tp.lower_speed, (pole[2] - tp.push_height) / tp.dt)
                 return twist
-        if obj.kind == "capsule":
+        if flank:
             vz = tp.height_gain * (tp.push_height - pole[2]) / tp.dt
         else:
             vz = tp.height_gain * (indent - tp.indentation) / tp.dt if obs.in_contact else 0.0
@@ -525,6 +575,16 @@ def _teacher(palm: PalmGeometry, world: ManipulationWorld, obj: ManipulationObje
                 aim = u + tp.swing_gain * (u - d)
                 v = tp.push_speed * aim / np.linalg.norm(aim)
                 twist[:2], twist[2] = v, np.clip(vz, -tp.lower_speed, tp.lower_speed)
+                return twist
+        if state["phase"] == "drag":
+            if not on:
+                state["phase"] = "after"
+            else:  # the pressed capsule follows the palm: move along d
+                d = np.array([-tp.steer_gain * p[0], 1.0])
+                twist[:2], twist[2] = (
+                    tp.push_speed * d / np.linalg.norm(d),
+                    np.clip(vz, -tp.lower_speed, tp.lower_speed),
+                )
                 return twist
         if state["phase"] == "after":
             state["done"] += 1
@@ -594,13 +654,25 @@ def evaluate_success(
 
 
 def fit_manipulation_policy(
-    runs: list[ManipulationRun], n_states: int = 4, regularization: float = 1e-3, seed: int = 0
-) -> EdgeFollowingPolicy:
-    """Min-max normalize ``[S, A]`` of all demonstrations, Baum-Welch 4-state HMM, GMRa policy."""
+    runs: list[ManipulationRun], n_states: int = 4, regularization: float = 1e-3, seed: int = 0,
+    n_restarts: int = 1,
+) -> EdgeFollowingPolicy:  # fmt: skip
+    """Min-max normalize ``[S, A]`` of all demonstrations, Baum-Welch 4-state HMM, GMRa policy
+    (``n_restarts``: see :func:`~defgraspnets.tactile.lfd.experiments.fit_edge_following_policy`)."""
     if len(runs) < 1:
         raise ValueError("need at least one demonstration")
     dt = runs[0].dt
-    return fit_edge_following_policy([r.demonstration() for r in runs], n_states, regularization, seed, dt)
+    return fit_edge_following_policy(
+        [r.demonstration() for r in runs], n_states, regularization, seed, dt, n_restarts
+    )
+
+
+def mirror_start(palm: PalmGeometry, object_pose, sensor_pose) -> tuple[np.ndarray, np.ndarray]:
+    """The mirror image of a start about the corridor axis ``x = 0``: object ``(x, y, theta) -> (-x, y,
+    -theta)``, palm pole ``x -> -x`` (the palm keeps its orientation)."""
+    p = np.asarray(object_pose, dtype=np.float64) * [-1.0, 1.0, -1.0]
+    pole = palm.pole(sensor_pose) * [-1.0, 1.0, 1.0]
+    return p, palm.pose(pole)
 
 
 def rollout_manipulation(
@@ -629,27 +701,44 @@ def mixed_manipulation_experiment(
     seed: int = 0,
     regularization: float = 1e-3,
     yaw_tolerance: float = np.deg2rad(5.0),
+    n_restarts: int = 5,
+    mirror_demonstrations: tuple[str, ...] = ("prism",),
 ) -> dict:
     """§5.5: ``n_demonstrations`` capsule pushes (cycling through the 8 capsules) and as many prism
-    rotations, fit the HMM, roll out from ``n_rollouts`` unseen starts (half capsules, half prism)."""
+    rotations, fit the HMM, roll out from ``n_rollouts`` unseen starts (half capsules, half prism).
+
+    ``n_restarts``: Baum-Welch restarts (:func:`fit_manipulation_policy`). ``mirror_demonstrations``: object
+    kinds whose every second demonstration is the mirror image (:func:`mirror_start`) of the one before
+    (the task is symmetric about the corridor axis; a random start is still drawn so that the other
+    demonstrations do not change). With ten random prism yaws the demonstrated turns are unbalanced and
+    the per-state linear regression of the yaw rate also leans on features that are even under the mirror
+    (``e1_x``, ``c_y``, ``lambda``), which biases where the policy stops turning.
+    """
+    for kind in mirror_demonstrations:
+        if kind not in ("capsule", "prism"):
+            raise ValueError(f"mirror_demonstrations holds 'capsule' or 'prism', got {kind!r}")
     if n_demonstrations < 1 or n_rollouts < 2:
         raise ValueError("need n_demonstrations >= 1 and n_rollouts >= 2")
     world = world or ManipulationWorld()
     teacher = teacher or TeacherParameters()
     palm = PalmGeometry.from_simulation(sim)
     rng = np.random.default_rng(seed)
-    demos = []
+    demos, previous = [], {}
     for i in range(n_demonstrations):
         for obj in (CAPSULES[i % len(CAPSULES)], PRISM):
-            demos.append(demonstrate(sim, world, palm, obj, *sample_start(obj, palm, world, rng), teacher))
-    policy = fit_manipulation_policy(demos, n_states, regularization, seed)
+            start = sample_start(obj, palm, world, rng, capsule_approach=teacher.capsule_approach)
+            if obj.kind in mirror_demonstrations and i % 2 == 1:
+                prev_obj, prev_start = previous[obj.kind]
+                obj, start = prev_obj, mirror_start(palm, *prev_start)
+            previous[obj.kind] = (obj, start)
+            demos.append(demonstrate(sim, world, palm, obj, *start, teacher))
+    policy = fit_manipulation_policy(demos, n_states, regularization, seed, n_restarts)
     test_rng = np.random.default_rng(seed + 10_000)  # unseen starts
     rollouts, outcomes = [], []
     for i in range(n_rollouts):
         obj = CAPSULES[(3 * i + 1) % len(CAPSULES)] if i % 2 == 0 else PRISM
-        run = rollout_manipulation(
-            sim, world, palm, policy, obj, *sample_start(obj, palm, world, test_rng), rollout_steps
-        )
+        start = sample_start(obj, palm, world, test_rng, capsule_approach=teacher.capsule_approach)
+        run = rollout_manipulation(sim, world, palm, policy, obj, *start, rollout_steps)
         rollouts.append(run)
         outcomes.append(evaluate_success(run, world, yaw_tolerance))
     demo_outcomes = [evaluate_success(d, world, yaw_tolerance) for d in demos]
@@ -671,6 +760,8 @@ def mixed_manipulation_experiment(
             "teacher_successes": sum(o["success"] for o in demo_outcomes),
             "teacher_outcomes": demo_outcomes,
             "hmm_states": policy.hmm.n_states,
+            "hmm_restarts": int(n_restarts),
+            "mirrored_demonstrations": list(mirror_demonstrations),
             "hmm_log_likelihood": policy.hmm.log_likelihood_history[-1]
             if policy.hmm.log_likelihood_history
             else None,
