@@ -54,6 +54,9 @@ log = logging.getLogger(__name__)
 
 
 LINEAR_SOLVERS = ("auto", "cg", "amg", "direct", "dense")
+# Levenberg-Marquardt damping of a rejected exact-Hessian step, in units of E h on the vertex diagonal:
+# it starts at LM_START, x10 per rejection up to LM_MAX, /3 per accepted full step, dropped below LM_MIN
+LM_START, LM_MAX, LM_MIN = 1e-3, 0.1, 1e-6
 # "auto" factors problems densely up to these many unknowns: on CUDA 4000 vertices (1.2 GB per factor);
 # on the CPU 300 vertices, where dense and AMG-CG break even (2-core CPU, 4 squeeze ramps x 10 steps: 125
 # vertices 2.2 vs 5.2 s (12 ramps x 8), 343 vertices 4.7 vs 4.1 s, 729 vertices 22.0 vs 9.1 s)
@@ -116,7 +119,15 @@ class SolverOptions:
             one: near a stable equilibrium the assembled Hessian is positive definite even where compressed
             elements are not. Measured on a fingertip dimpling the membrane: 8 % fewer Newton iterations (the
             slow convergence there has another cause, still open). A step that is not a descent direction
-            or needs backtracking returns the problem to the projected Hessian for the rest of the increment.
+            or needs backtracking (a step only shortened to ``max_step_fraction`` is not rejected) is
+            retried with Levenberg-Marquardt damping on the exact Hessian, ``LM_START`` = 1e-3 to
+            ``LM_MAX`` = 0.1 times E h on the diagonal (x10 per rejection, /3 per accepted full step, dropped
+            below ``LM_MIN`` = 1e-6); past ``LM_MAX`` the problem returns to the projected Hessian for the
+            rest of the increment. Near a crease of a soft solid (a near-zero negative eigenvalue) the
+            projected Hessian overestimates the curvature and Newton crawls, while the damped exact step
+            converges. The damping shrinks after every accepted full step, not only those that lower the
+            residual: a body sliding at the friction limit keeps its residual while its energy falls, and a
+            fixed damping would make it crawl instead of being flagged ESCAPED.
         query_distance: search radius [m] of triangle-mesh bodies' signed distance queries.
         record_tet_stress: keep the per-tet Cauchy stress in results (B x M x 9 floats).
     """
@@ -492,6 +503,9 @@ class QuasiStaticSolver:
         if D:
             shift[:, N:, 0] = self.options.regularization * self._youngs_np[:, None] * self.mesh.diameter
         self._diag_shift = wp.array(shift.reshape(-1, 3), dtype=wp.vec3d, device=dev)
+        self._diag_shift_base = shift
+        self._damping_scale = np.zeros_like(shift)  # Levenberg-Marquardt unit per row: E h [N/m]
+        self._damping_scale[:, :N, :] = (self._youngs_np[:, None] * self.mesh.vertex_size[None])[..., None]
 
     def _body(self, name: str) -> int:
         for k, b in enumerate(self.bodies):
@@ -1177,6 +1191,7 @@ class QuasiStaticSolver:
         stale = np.zeros(B, dtype=bool)
         self._relag_has_residual[mask] = False
         exact = np.zeros(B, dtype=np.int32)
+        damping = np.zeros(B)  # Levenberg-Marquardt factor of the exact Hessian, per problem
         self._exact_hessian.zero_()
         for _ in range((o.max_newton_iterations + 1) * (o.max_friction_relags + 1)):
             self._relag_friction(relag & working, accelerate=stale if o.friction_relaxation else None)
@@ -1192,7 +1207,7 @@ class QuasiStaticSolver:
                 inputs=[sysm.gradient, self._free, active, self.rows_per_problem, sysm.rhs, res_arr],
                 device=self.device,
             )
-            res = res_arr.numpy()
+            res = res_arr.numpy().copy()  # on the CPU numpy() is a view, and scratch[2] is reused below
             previous = residual.copy()
             residual[working] = res[working]
             scale = np.maximum(np.maximum(fscale, lscale), dof_targets.max(axis=1, initial=0.0))
@@ -1263,14 +1278,28 @@ class QuasiStaticSolver:
             nonfinite_step = failed == 2
             status[nonfinite_step] = SolveStatus.NONFINITE
             if o.exact_hessian:
-                # trust the exact Hessian after a full step that lowered the residual; fall back to the
-                # projected one (and retry from the unchanged state) when its step fails or is cut back
+                # trust the exact Hessian after a full step that lowered the residual; when its step fails
+                # or is cut back by the line search (a step shortened to max_step is not), retry from the
+                # unchanged state with Levenberg-Marquardt damping, then with the projected Hessian
                 alpha = self._step.numpy()
-                lost = working & (exact == 1) & ((failed == 1) | (alpha < 1.0))
+                full = alpha >= self._step_cap
+                lost = working & (exact == 1) & ((failed == 1) | ~full)
                 failed[lost] = 0
-                exact[lost] = 0
-                exact[working & ~lost & (alpha == 1.0) & (res < previous)] = 1
+                before = damping.copy()
+                damp = lost & (damping < LM_MAX)
+                damping[damp] = np.maximum(10.0 * damping[damp], LM_START)
+                exact[lost & ~damp] = 0
+                damping[lost & ~damp] = 0.0
+                # an accepted full damped step widens the trust region whatever the residual did (a sliding
+                # body's residual stays put while its energy falls; a fixed damping would make it crawl)
+                damping[working & ~lost & full & (exact == 1)] /= 3.0
+                good = working & ~lost & full & (res < previous)
+                damping[damping < LM_MIN] = 0.0
+                exact[good] = 1
                 self._exact_hessian.assign(exact)
+                if np.any(damping != before):
+                    shift = self._diag_shift_base + damping[:, None, None] * self._damping_scale
+                    self._diag_shift.assign(shift.reshape(-1, 3))
             # a failed line search this close to the tolerance is round-off: accept the state
             stalled = failed == 1
             near = stalled & (residual <= 1e3 * (o.rtol * scale + atol))
@@ -1289,6 +1318,8 @@ class QuasiStaticSolver:
             status[esc] = SolveStatus.ESCAPED
             working &= ~esc
         self._exact_hessian.zero_()
+        if np.any(damping):
+            self._diag_shift.assign(self._diag_shift_base.reshape(-1, 3))
         return ok, status, iters, lin_iters, residual
 
     def _linear_solve(self, rtol: float) -> tuple[int, float]:
@@ -1327,6 +1358,7 @@ class QuasiStaticSolver:
         slope_np = slope.numpy()
         biggest = np.maximum(vmax.numpy(), dmax.numpy())
         alpha = np.where(working, np.minimum(1.0, max_step / np.maximum(biggest, 1e-300)), 0.0)
+        self._step_cap = alpha.copy()  # the first trial: the full step, shortened to max_step
         e0 = self._energy_at(self._q, self._positions, self._travel, active)
         result = np.zeros(B, dtype=int)
         searching = working.copy()
