@@ -44,6 +44,7 @@ def main(cfg: DictConfig) -> dict:
         contact_tolerance=c["contact_tolerance"],
         friction=c["friction"],
         max_step=c["max_step"],
+        device=c["device"],
         log=log.info,
     )
     log.info("wrote %s/contact_regions.json (%.0f s)", c["out_dir"], report["seconds"])

@@ -52,6 +52,7 @@ def main(cfg: DictConfig) -> dict:
         layers=c["layers"],
         friction=c["friction"],
         max_step=c["max_step"],
+        device=c["device"],
         log=log.info,
     )
     for pv, row in report["table_2_1"].items():

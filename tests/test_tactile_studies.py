@@ -44,6 +44,10 @@ def test_bad_inputs_give_clear_errors(sphere_sim):
         st.make_study_simulator(sphere_sim.sensor, SphereIndenter(radius=0.01), {"gauge_pressure": 1.0})
     with pytest.raises(IndenterError, match="supports"):
         MembraneSimulator(sphere_sim.sensor, object(), sphere_sim.gas)
+    # the studies solve on the device they are given (scripts' `device=`), the CPU by default
+    assert str(sphere_sim.solver.device) == "cpu"
+    with pytest.raises(ValueError, match="tpu"):
+        st.make_study_simulator(sphere_sim.sensor, SphereIndenter(radius=0.01), WORKING, device="tpu")
     one_state = st.ForceSweep(
         0.02, "s", True, 120.0, np.ones(3), np.ones(3), np.ones(3), np.ones(3, bool), linear={"slope": 1.0}
     )

@@ -126,10 +126,12 @@ def make_study_simulator(
     friction: float = 0.5,
     intrinsics=None,
     options: fem.SolverOptions | None = None,
+    device: str | None = "cpu",
 ) -> MembraneSimulator:
     """The sensor at ``state``, as :func:`defgraspnets.tactile.datasets.make_simulator` (inflate open to the
     gauge pressure; if closed, seal there so that P V of the inflated state stays constant), for any
-    indenter :class:`~defgraspnets.tactile.sensor.MembraneSimulator` accepts."""
+    indenter :class:`~defgraspnets.tactile.sensor.MembraneSimulator` accepts, solved on the Warp ``device``
+    ("cpu", "cuda", ...; None = Warp's default)."""
     from defgraspnets.tactile.camera import PICO_FLEXX
 
     if not isinstance(state, GasState):
@@ -139,6 +141,7 @@ def make_study_simulator(
         friction=friction,
         intrinsics=PICO_FLEXX if intrinsics is None else intrinsics,
         options=options,
+        device=device,
     )
     neutral = sensor.cavity_volume + sensor.dimensions.housing_volume
     gas = PVState(ATMOSPHERIC_PRESSURE + state.gauge_pressure, neutral)
@@ -744,6 +747,7 @@ def run_contact_region_study(
     contact_tolerance: float = 1.0e-4,
     friction: float = 0.5,
     max_step: float = 0.002,
+    device: str | None = "cpu",
     log=print,
 ) -> dict:
     """Figs 2.5, 2.7, 2.8 on the simulated sensor; writes PNGs and ``contact_regions.json`` to ``out_dir``.
@@ -754,6 +758,7 @@ def run_contact_region_study(
         sphere_diameters, sweep_cap_divisions: the area sweeps' spheres [m] and the mesh for each.
         sweep_states: gas states (``{"gauge_pressure": Pa, "closed": bool}``) of the sweeps.
         sweep_depths: increasing travels beyond contact [m].
+        device: Warp device of the FEM solves and the camera ("cpu", "cuda", ...).
     """
     from pathlib import Path
 
@@ -773,7 +778,7 @@ def run_contact_region_study(
     for name, spec in obstacles.items():
         spec = dict(spec)
         indenter = make_indenter(spec.pop("kind"), **spec)
-        sim = make_study_simulator(sensor, indenter, o_state, friction=friction)
+        sim = make_study_simulator(sensor, indenter, o_state, friction=friction, device=device)
         t = time.perf_counter()
         r = contact_region_experiment(sim, obstacle_depth, classification, contact_tolerance, max_step)
         results.append(r)
@@ -795,7 +800,7 @@ def run_contact_region_study(
         report["mesh_spacing"][str(cap)] = spacing
         for state in _states(sweep_states):
             sim = make_study_simulator(
-                sensor, SphereIndenter(radius=0.5 * diameter), state, friction=friction
+                sensor, SphereIndenter(radius=0.5 * diameter), state, friction=friction, device=device
             )
             s = area_sweep(
                 sim, sweep_depths, classification, contact_tolerance, max_step, state.label, state.closed
@@ -849,9 +854,11 @@ def run_force_model_study(
     layers: int = 2,
     friction: float = 0.5,
     max_step: float = 0.002,
+    device: str | None = "cpu",
     log=print,
 ) -> dict:
-    """Figs 2.9-2.11 and Table 2.1 on the simulated sensor; writes PNGs and ``force_models.json``.
+    """Figs 2.9-2.11 and Table 2.1 on the simulated sensor; writes PNGs and ``force_models.json``
+    (FEM solves and camera on the Warp ``device``).
 
     ``matching_states`` index ``states`` (closed ones, inside the PV range of the polynomial); the desired
     forces at a state are ``desired_force_fractions`` of the largest force its characterization reached.
@@ -885,7 +892,7 @@ def run_force_model_study(
         report["mesh_spacing"][str(cap)] = mesh_spacing(sensor)
         for k, state in enumerate(gas):
             sim = make_study_simulator(
-                sensor, SphereIndenter(radius=0.5 * diameter), state, friction=friction
+                sensor, SphereIndenter(radius=0.5 * diameter), state, friction=friction, device=device
             )
             s = force_sweep(sim, depths, max_step, state.label, state.closed)
             sweeps.append(s)
