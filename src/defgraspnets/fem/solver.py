@@ -1268,7 +1268,7 @@ class QuasiStaticSolver:
             if self.pressure_surface is not None:
                 n_lin += self._gas_rank_one(working, linear_rtol)
             lin_iters[working] += n_lin
-            failed = self._line_search(working, active, max_step)
+            failed, first_trial = self._line_search(working, active, max_step)
             if log.isEnabledFor(logging.DEBUG):
                 log.debug(
                     "  step %.3e line search %s",
@@ -1282,7 +1282,7 @@ class QuasiStaticSolver:
                 # or is cut back by the line search (a step shortened to max_step is not), retry from the
                 # unchanged state with Levenberg-Marquardt damping, then with the projected Hessian
                 alpha = self._step.numpy()
-                full = alpha >= self._step_cap
+                full = alpha >= first_trial
                 lost = working & (exact == 1) & ((failed == 1) | ~full)
                 failed[lost] = 0
                 before = damping.copy()
@@ -1333,9 +1333,10 @@ class QuasiStaticSolver:
             return sysm.solve_dense()
         return sysm.solve_direct()
 
-    def _line_search(self, working: np.ndarray, active, max_step: float) -> np.ndarray:
+    def _line_search(self, working: np.ndarray, active, max_step: float) -> tuple[np.ndarray, np.ndarray]:
         """Armijo backtracking on Pi per problem; updates the state. Returns per problem 0 (accepted) or
-        1 (no acceptable step)."""
+        1 (no acceptable step), and the first step length tried (1, or less where the step is shortened to
+        ``max_step``)."""
         B = self.batch_size
         sysm = self.system
         slope, vmax, dmax = self._scratch[2], self._scratch[3], self._scratch[4]
@@ -1358,7 +1359,7 @@ class QuasiStaticSolver:
         slope_np = slope.numpy()
         biggest = np.maximum(vmax.numpy(), dmax.numpy())
         alpha = np.where(working, np.minimum(1.0, max_step / np.maximum(biggest, 1e-300)), 0.0)
-        self._step_cap = alpha.copy()  # the first trial: the full step, shortened to max_step
+        first_trial = alpha.copy()
         e0 = self._energy_at(self._q, self._positions, self._travel, active)
         result = np.zeros(B, dtype=int)
         searching = working.copy()
@@ -1396,7 +1397,7 @@ class QuasiStaticSolver:
         )
         wp.copy(self._q, self._q_trial)
         self._unpack(self._q, self._positions, self._travel)
-        return result
+        return result, first_trial
 
     def _start_increment(self, change, lam, start, end, mask):
         """Initial state of the masked problems' next increment: the predictor, then the loads. A predicted

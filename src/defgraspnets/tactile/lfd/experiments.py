@@ -177,8 +177,6 @@ def fit_edge_following_policy(
     """
     if len(demonstrations) < 1:
         raise ValueError("need at least one demonstration")
-    if int(n_restarts) != n_restarts or n_restarts < 1:
-        raise ValueError(f"n_restarts must be a positive integer, got {n_restarts}")
     data = [d.observations for d in demonstrations]
     normalizer = MinMaxNormalizer.fit(np.concatenate(data))
     sequences = [normalizer.transform(x) for x in data]

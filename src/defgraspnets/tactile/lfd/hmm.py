@@ -382,22 +382,18 @@ class GaussianHMM:
             initialize: run :meth:`initialize` first (``n_restarts`` times, keeping the best run);
                 False runs once from the current parameters.
         """
-        x, mask = _pad(sequences)
-        if not initialize:
-            self._require_fitted()
-            self._check_data(x)
-        if mask.sum() < self.n_states:
-            raise ValueError(f"{mask.sum()} observations cannot train {self.n_states} states")
-        if not initialize:
-            self._baum_welch(x, mask)
-            self.restart_objectives = [self._objective(x, mask)]
+        if initialize:
+            runs = self.fit_restarts(sequences)
+            objectives = [r.restart_objectives[0] for r in runs]
+            vars(self).update(vars(runs[int(np.argmax(objectives))]))  # the runs are copies of self
+            self.restart_objectives = objectives
             return self
-        runs = self.fit_restarts(sequences)
-        objectives = [r.restart_objectives[0] for r in runs]
-        best = runs[int(np.argmax(objectives))]
-        for k in self._STATE:
-            setattr(self, k, getattr(best, k))
-        self.restart_objectives = objectives
+        self._require_fitted()
+        x, mask = _pad(sequences)
+        self._check_data(x)
+        self._check_count(mask)
+        self._baum_welch(x, mask)
+        self.restart_objectives = [self._objective(x, mask)]
         return self
 
     def fit_restarts(self, sequences: Sequence[np.ndarray]) -> list[GaussianHMM]:
@@ -405,8 +401,7 @@ class GaussianHMM:
         copy per run, run 0 being the single-run fit. Each copy's ``restart_objectives`` holds its own final
         objective. ``self`` is left unchanged."""
         x, mask = _pad(sequences)
-        if mask.sum() < self.n_states:
-            raise ValueError(f"{mask.sum()} observations cannot train {self.n_states} states")
+        self._check_count(mask)
         rng = np.random.default_rng(self.random_state)
         runs = []
         for r in range(self.n_restarts):
@@ -434,14 +429,9 @@ class GaussianHMM:
         before each update)."""
         return float(self._forward_backward(x, mask, backward=False)[4].sum()) + self._log_prior()
 
-    _STATE = (
-        "start_prob",
-        "transition",
-        "means",
-        "covariances",
-        "log_likelihood_history",
-        "objective_history",
-    )
+    def _check_count(self, mask: np.ndarray) -> None:
+        if mask.sum() < self.n_states:
+            raise ValueError(f"{mask.sum()} observations cannot train {self.n_states} states")
 
     def sample(self, length: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """Draw one sequence of ``length`` observations; returns (observations (T, D), states (T,))."""

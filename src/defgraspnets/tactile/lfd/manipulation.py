@@ -119,6 +119,11 @@ _G = 9.81
 CAPSULE_APPROACHES = ("above", "behind")
 
 
+def _check_capsule_approach(approach: str) -> None:
+    if approach not in CAPSULE_APPROACHES:
+        raise ValueError(f"capsule_approach must be one of {CAPSULE_APPROACHES}, got {approach!r}")
+
+
 class ExtrudedFootprintSDF(SignedDistance):
     """A planar footprint at pose ``(x, y, theta)`` extruded from ``z = 0`` to ``z = height`` [m].
 
@@ -419,10 +424,7 @@ class TeacherParameters:
     rotate_on_contact: bool = True
 
     def __post_init__(self):
-        if self.capsule_approach not in CAPSULE_APPROACHES:
-            raise ValueError(
-                f"capsule_approach must be one of {CAPSULE_APPROACHES}, got {self.capsule_approach!r}"
-            )
+        _check_capsule_approach(self.capsule_approach)
 
 
 @dataclass(frozen=True)
@@ -464,8 +466,7 @@ def sample_start(
     Prism: centroid ``x ~ U(-0.03, 0.03)``, ``y ~ U(-0.22, -0.18)``, yaw ``U(-40, 40)`` deg; the pole above it
     (``+-3`` mm).
     """
-    if capsule_approach not in CAPSULE_APPROACHES:
-        raise ValueError(f"capsule_approach must be one of {CAPSULE_APPROACHES}, got {capsule_approach!r}")
+    _check_capsule_approach(capsule_approach)
     if obj.kind == "capsule":
         pose = np.array([rng.uniform(-0.015, 0.015), rng.uniform(-0.21, -0.17), rng.uniform(-np.pi, np.pi)])
         ey = _extent_along(obj.shape, pose[2], np.array([0.0, 1.0]))
