@@ -37,7 +37,14 @@ import hydra  # noqa: E402
 import numpy as np  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
-PREDICTOR_OPTIONS = ("precision", "compile", "activation_checkpointing", "static_shapes", "share_object")
+PREDICTOR_OPTIONS = (
+    "precision",
+    "compile",
+    "activation_checkpointing",
+    "static_shapes",
+    "share_object",
+    "fused_edges",
+)
 
 
 def _network(cfg):
@@ -145,6 +152,7 @@ def main(cfg: DictConfig) -> None:
             **v,
             "static_shapes": predictor.static_shapes,
             "share_object": predictor.share_object,
+            "fused_edges": predictor.fused_edges,
         }
         compiles = _Compiles()
         t = time.perf_counter()

@@ -35,7 +35,11 @@ def main(cfg: DictConfig) -> dict:
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
     predictor = DefGraspNetsPredictor.from_checkpoint(
-        cfg.ckpt_path, device=device, precision=cfg.precision, compile=cfg.compile
+        cfg.ckpt_path,
+        device=device,
+        precision=cfg.precision,
+        compile=cfg.compile,
+        fused_edges=cfg.fused_edges,
     )
     mesh = resolve_object_mesh(cfg.object, cfg.box.size, cfg.box.divisions, cfg.target_nodes, cfg.mesher)
     objective = instantiate(cfg.objective, _convert_="all")

@@ -8,6 +8,21 @@ os.environ.setdefault("WANDB_MODE", "offline")
 os.environ.setdefault("HYDRA_FULL_ERROR", "1")
 
 
+def _torch_cuda() -> bool:
+    try:
+        import torch
+
+        return torch.cuda.is_available()
+    except Exception:
+        return False
+
+
+# without a GPU, Triton kernels (the fused message passing) run in Triton's CPU interpreter; the flag is read
+# when a kernel is defined, so it is set before any test imports one
+if not _torch_cuda():
+    os.environ.setdefault("TRITON_INTERPRET", "1")
+
+
 def _cuda_available() -> bool:
     try:
         import warp as wp

@@ -181,3 +181,33 @@ def test_precision_options(trained):
     assert float(rel.max()) < 0.1  # bf16 network: ~1e-2 relative error
     with pytest.raises(ValueError, match="precision"):
         DefGraspNetsPredictor.from_checkpoint(path, precision="fp8")
+
+
+def test_fused_message_passing_predicts_the_same_fields(trained):
+    """``fused_edges=True`` (Triton kernels; here in the CPU interpreter, float32) gives the op-by-op fields;
+    it is off by default on the CPU, and refused where the kernels cannot run."""
+    from defgraspnets.models import fused_edges as fe
+
+    module, dm, path = trained
+    sh, mesh, geometry, gripper, dist = _grasp_inputs(dm)
+    kw = dict(fingers=geometry, gripper_pose=gripper, closing_distance=dist)
+    plain = DefGraspNetsPredictor.from_checkpoint(path)
+    assert not plain.fused_edges
+    if not (fe.triton is not None and fe._interpreting()):
+        pytest.skip("needs Triton's CPU interpreter (TRITON_INTERPRET=1)")
+    ref = plain.predict(mesh, 5.0, 2e5, **kw)
+    fused = DefGraspNetsPredictor.from_checkpoint(path, fused_edges=True)
+    out = fused.predict(mesh, 5.0, 2e5, **kw)
+    torch.testing.assert_close(out.stress, ref.stress, rtol=1e-4, atol=1e-3)
+    torch.testing.assert_close(out.displacement, ref.displacement, rtol=1e-4, atol=1e-9)
+    grad = fused.predict(
+        mesh, 5.0, 2e5, grad=True, **{**kw, "gripper_pose": torch.as_tensor(gripper).requires_grad_()}
+    )
+    assert grad.stress.requires_grad  # passes with gradients use the differentiable blocks
+
+
+def test_fused_message_passing_is_refused_where_it_cannot_run(trained, monkeypatch):
+    module, dm, path = trained
+    monkeypatch.setenv("TRITON_INTERPRET", "0")
+    with pytest.raises(ValueError, match="fused_edges needs Triton, a CUDA device"):
+        DefGraspNetsPredictor.from_checkpoint(path, fused_edges=True)

@@ -1,0 +1,152 @@
+"""Fused message passing (Triton kernels): the same function as the op-by-op processor blocks.
+
+On a machine without CUDA the kernels run in Triton's CPU interpreter (``tests/conftest.py`` sets
+``TRITON_INTERPRET=1``), in float32; the bfloat16 tensor-core path is checked on a GPU (``-m gpu``).
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from defgraspnets.models import fused_edges as fe
+from defgraspnets.models.meshgraphnet import EdgeMLP, EncodeProcessDecode
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+needs_kernels = pytest.mark.skipif(
+    not (fe.triton is not None and fe._interpreting()),
+    reason="needs Triton's CPU interpreter (TRITON_INTERPRET=1, set by conftest without CUDA)",
+)
+
+
+def _perturbed(module: torch.nn.Module, seed: int = 0) -> torch.nn.Module:
+    """Random non-trivial weights (also LayerNorm gains and biases, which start at 1 and 0)."""
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in module.parameters():
+            p.add_(0.1 * torch.randn(p.shape, generator=g))
+    return module
+
+
+def _graph(n=40, mesh_edges=200, contact_edges=30, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    mesh_index = torch.randint(0, n, (2, mesh_edges), generator=g)
+    contact_index = torch.randint(0, n, (2, contact_edges), generator=g)
+    mask = torch.rand(contact_edges, generator=g) > 0.3
+    return mesh_index, contact_index, mask, g
+
+
+@needs_kernels
+@pytest.mark.parametrize("hidden_layers", [1, 2, 3])
+def test_fused_network_equals_the_op_by_op_network(hidden_layers):
+    """Whole encode-process-decode forward, padding contact edges masked, float32: equal to rounding."""
+    mesh_index, contact_index, mask, g = _graph()
+    net = _perturbed(EncodeProcessDecode(7, 5, 6, 4, latent=16, num_blocks=3, hidden_layers=hidden_layers))
+    node, mesh, contact = (
+        torch.randn(40, 7, generator=g),
+        torch.randn(200, 5, generator=g),
+        torch.randn(30, 6),
+    )
+    with torch.no_grad():
+        ref = net(node, mesh, contact, mesh_index, contact_index, mask)
+        net.fused_edges = True
+        out = net(node, mesh, contact, mesh_index, contact_index, mask)
+    torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-5 * float(ref.abs().max()))
+    # the masked (padding) contact edges change nothing: a graph without them gives the same outputs
+    with torch.no_grad():
+        kept = net(node, mesh, contact[mask], mesh_index, contact_index[:, mask])
+    torch.testing.assert_close(kept, out, rtol=1e-5, atol=1e-5 * float(ref.abs().max()))
+
+
+@needs_kernels
+def test_fused_edge_update_gives_the_updated_latents_and_the_sums_per_target():
+    mesh_index, _, _, g = _graph(n=25, mesh_edges=90)
+    mlp = _perturbed(EdgeMLP(16, 2))
+    edge, node = torch.randn(90, 16, generator=g), torch.randn(25, 16, generator=g)
+    with torch.no_grad():
+        message = mlp(edge, node, mesh_index)
+        updated, sums = fe.fused_edge_update(mlp, edge, node, mesh_index)
+    torch.testing.assert_close(updated, edge + message, rtol=1e-5, atol=1e-5)
+    expected = torch.zeros(25, 16).index_add_(0, mesh_index[1], message)
+    torch.testing.assert_close(sums, expected, rtol=1e-5, atol=1e-5)
+    # a node that no edge targets gets a zero sum; no edges at all: nothing to update, zero sums
+    untouched = torch.ones(25, dtype=torch.bool)
+    untouched[mesh_index[1]] = False
+    assert untouched.any() and torch.all(sums[untouched] == 0)
+    with torch.no_grad():
+        none, zero = fe.fused_edge_update(mlp, edge[:0], node, mesh_index[:, :0])
+    assert none.shape == (0, 16) and torch.all(zero == 0)
+
+
+@needs_kernels
+def test_the_fused_path_serves_passes_without_gradients_only():
+    """With autograd on, the network keeps the differentiable op-by-op blocks (and never calls a kernel)."""
+    mesh_index, contact_index, mask, g = _graph()
+    net = _perturbed(EncodeProcessDecode(7, 5, 6, 4, latent=16, num_blocks=2))
+    net.fused_edges = True
+    node = torch.randn(40, 7, generator=g, requires_grad=True)
+    mesh, contact = torch.randn(200, 5, generator=g), torch.randn(30, 6, generator=g)
+    calls = []
+    original = fe._edge_update_kernel
+
+    class Spy:
+        def __getitem__(self, grid):
+            calls.append(grid)
+            return original[grid]
+
+    try:
+        fe._edge_update_kernel = Spy()
+        out = net(node, mesh, contact, mesh_index, contact_index, mask)
+        assert out.requires_grad and not calls
+        out.sum().backward()
+        assert node.grad is not None and torch.isfinite(node.grad).all()
+        with torch.no_grad():
+            fused = net(node, mesh, contact, mesh_index, contact_index, mask)
+        assert len(calls) == 2 * 2  # mesh and contact edges of each of the 2 blocks
+    finally:
+        fe._edge_update_kernel = original
+    torch.testing.assert_close(fused, out.detach(), rtol=1e-5, atol=1e-5 * float(out.detach().abs().max()))
+
+
+def test_availability_and_clear_errors(monkeypatch):
+    monkeypatch.setenv("TRITON_INTERPRET", "0")
+    # float32 tile products are not compiled for the GPU, and without the interpreter the CPU has no kernels
+    assert not fe.fused_edges_available("cpu", torch.bfloat16)
+    assert not fe.fused_edges_available("cuda", torch.float32)
+    assert fe.fused_edges_available("cuda", torch.bfloat16) == (fe.triton is not None)
+    assert not fe.fused_edges_available("cuda", torch.float64)
+    if fe.triton is None:
+        pytest.skip("Triton is not installed")
+    mlp = EdgeMLP(16, 2)
+    with pytest.raises(RuntimeError, match="CUDA with bfloat16"):
+        fe.fused_edge_update(mlp, torch.zeros(3, 16), torch.zeros(4, 16), torch.zeros(2, 3, dtype=torch.long))
+
+
+@needs_kernels
+def test_unsupported_shapes_are_refused():
+    with pytest.raises(ValueError, match="power-of-two latent"):
+        fe.fused_edge_update(EdgeMLP(24, 2), torch.zeros(3, 24), torch.zeros(4, 24), torch.zeros(2, 3).long())
+    with pytest.raises(ValueError, match="do not match the weights"):
+        fe.fused_edge_update(
+            EdgeMLP(16, 2), torch.zeros(3, 16).double(), torch.zeros(4, 16), torch.zeros(2, 3).long()
+        )
+
+
+@pytest.mark.gpu
+def test_bf16_fused_network_is_as_accurate_as_the_bf16_op_by_op_network():
+    """On CUDA: against a float32 reference, the fused bfloat16 forward errs no more than the unfused one."""
+    mesh_index, contact_index, mask, g = _graph(n=3000, mesh_edges=30000, contact_edges=2000)
+    net = _perturbed(EncodeProcessDecode(7, 5, 6, 4, latent=128, num_blocks=15)).cuda()
+    inputs = [torch.randn(3000, 7, generator=g), torch.randn(30000, 5, generator=g), torch.randn(2000, 6)]
+    idx = [mesh_index.cuda(), contact_index.cuda(), mask.cuda()]
+    with torch.no_grad():
+        ref = net(*[x.cuda() for x in inputs], *idx)
+        net.to(torch.bfloat16)
+        low = [x.cuda().bfloat16() for x in inputs]
+        plain = net(*low, *idx).float()
+        net.fused_edges = True
+        fused = net(*low, *idx).float()
+    err_plain = float((plain - ref).abs().mean())
+    err_fused = float((fused - ref).abs().mean())
+    assert err_fused < 1.5 * err_plain + 1e-4 * float(ref.abs().mean())
