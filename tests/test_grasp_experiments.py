@@ -278,6 +278,42 @@ def test_linear_acceleration_thresholds_match_coulomb(experiments):
     assert res.instability[0] == pytest.approx(a.mean())
 
 
+def test_lost_problems_cost_no_further_newton_iterations(box, monkeypatch):
+    """Once a problem of the acceleration ramp is lost (no equilibrium: flagged and skipped by the solver; a
+    hold criterion failed: its load is frozen, so it starts at equilibrium) it spends no Newton iteration in
+    the later load steps of its batch; ``newton_iterations`` counts each problem's iterations of the ramp."""
+    from defgraspnets.grasp import experiments as exp_module
+
+    calls, holds = [], []
+    real_solve, real_hold = fem.QuasiStaticSolver.solve, exp_module.hold_state
+
+    def solve(self, *args, **kwargs):
+        eq = real_solve(self, *args, **kwargs)
+        calls.append(eq.newton_iterations.copy())
+        return eq
+
+    def hold(*args, **kwargs):
+        hs = real_hold(*args, **kwargs)
+        holds.append(hs.held.copy())
+        return hs
+
+    settings = ExperimentSettings(acceleration_steps=16)
+    ex = GraspExperiments(box, centered_grasp(), MATERIAL, settings, device="cpu", directions_per_solver=2)
+    monkeypatch.setattr(fem.QuasiStaticSolver, "solve", solve)
+    monkeypatch.setattr(exp_module, "hold_state", hold)
+    # along the pads (they slide at mu F / m) and along the closing axis (a finger unloads at F / m), in one
+    # batch: the first is lost steps before the second
+    res = ex.acceleration("linear", [[1, 0, 0], [0, 1, 0]])
+    ramp = calls[-len(holds) :]  # the ramp's solves follow the squeeze's
+    assert len(ramp) <= ex.settings.acceleration_steps
+    assert np.all(res.failure[0] != GraspFailure.HELD)
+    lost = np.cumsum(~np.array(holds), axis=0) > 0  # (steps, 2): lost at or before the step
+    assert lost[:-1].any(), "one direction must be lost before the ramp ends"
+    iterations = np.array(ramp)  # (steps, 2)
+    assert np.all(iterations[1:][lost[:-1]] == 0)
+    assert np.array_equal(res.newton_iterations[0], iterations.sum(axis=0)) and np.all(iterations[0] > 0)
+
+
 def test_angular_acceleration_thresholds_are_symmetric(experiments):
     """Twist about the closing axis (torsional friction) and about the approach axis, both signs."""
     res = experiments.acceleration("angular", [[0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])

@@ -372,6 +372,10 @@ class AccelerationResult:
     # or NOT_CONVERGED (Newton stalled near the friction limit: the threshold is then a lower bound)
     solver_status: np.ndarray
     instability: np.ndarray  # (G,) mean threshold over the directions
+    # (G, D) Newton iterations each problem spent in the acceleration ramp (the squeeze not counted): the
+    # cost of the test. A lost problem spends none after the step that lost it (flagged problems are
+    # skipped by the solver; one that failed a hold criterion keeps its load, so it is at equilibrium)
+    newton_iterations: np.ndarray | None = None
 
     @property
     def reached_limit(self) -> np.ndarray:
@@ -673,11 +677,12 @@ class GraspExperiments:
             failure=np.concatenate([p[1] for p in parts], axis=1),
             solver_status=np.concatenate([p[2] for p in parts], axis=1),
             instability=met.instability(threshold, limit),
+            newton_iterations=np.concatenate([p[3] for p in parts], axis=1),
         )
 
     def _acceleration_ramp(self, kind: str, dirs: np.ndarray, limit: float):
-        """(G, D) thresholds, failures and solver statuses of the G grasps along the D directions ``dirs``,
-        in one solver."""
+        """(G, D) thresholds, failures, solver statuses and Newton iterations of the G grasps along the D
+        directions ``dirs``, in one solver."""
         s = self.settings
         D, G = len(dirs), self.num_grasps
         solver, reference, closing, rows = self._squeezed(D, kind)
@@ -689,6 +694,7 @@ class GraspExperiments:
         threshold = np.where(held, limit, np.nan)
         level = np.zeros(G * D)  # current acceleration per problem (lost problems keep theirs)
         margin = np.ones(G * D)  # hold margin at the last step held (module docstring: criteria 2 and 3)
+        newton = np.zeros(G * D, dtype=np.int64)
         for k in range(1, s.acceleration_steps + 1):
             target = limit * k / s.acceleration_steps
             previous = level.copy()
@@ -699,6 +705,7 @@ class GraspExperiments:
             else:
                 load = fem.BodyLoad(angular_acceleration=vec, rotation_center=center)
             eq = solver.solve(body_load=load)
+            newton += eq.newton_iterations
             hs = self._hold(eq, reference, closing, self.pickup_force)
             newly = held & ~hs.held
             no_eq = newly & (hs.failure == GraspFailure.NO_EQUILIBRIUM)
@@ -715,7 +722,7 @@ class GraspExperiments:
             if not held.any():
                 break
         status = solver.status.reshape(G, D).copy()
-        return threshold.reshape(G, D), failure.reshape(G, D), status
+        return threshold.reshape(G, D), failure.reshape(G, D), status, newton.reshape(G, D)
 
     def run(self, experiments=("pickup", "reorientation", "linear", "angular")) -> GraspExperimentResults:
         """Run the named experiments (pickup always runs: it gives the features and F_slip)."""
