@@ -19,6 +19,13 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 
+def factorizations(solver) -> int | None:
+    """Matrix factorizations of all the solver's problems so far (None where the linear solver has none)."""
+    if solver.linear_solver not in ("direct", "dense") or not hasattr(solver.system, "factorizations"):
+        return None
+    return int(solver.system.factorizations.sum())
+
+
 @hydra.main(version_base="1.3", config_path="../configs", config_name="benchmark_fem")
 def main(cfg: DictConfig) -> None:
     import warp as wp
@@ -35,9 +42,10 @@ def main(cfg: DictConfig) -> None:
     mesh = fem.TetMesh.box(size=size, divisions=tuple(cfg.object.divisions), origin=-size / 2, name="box")
     grasps = sample_antipodal_grasps(mesh, num_grasps=cfg.num_grasps, seed=cfg.seed)
     material = fem.Material(cfg.youngs_modulus, cfg.poisson_ratio, cfg.density, model=cfg.material_model)
-    options = squeeze_solver_options(
-        linear_solver=cfg.linear_solver, max_newton_per_solve=cfg.max_newton_per_step
-    )
+    overrides = {"linear_solver": cfg.linear_solver, "max_newton_per_solve": cfg.max_newton_per_step}
+    if cfg.max_factor_reuse is not None:
+        overrides["max_factor_reuse"] = cfg.max_factor_reuse
+    options = squeeze_solver_options(**overrides)
 
     out = Path(cfg.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -70,7 +78,9 @@ def main(cfg: DictConfig) -> None:
         "max_force_n": cfg.max_force,
         "linear_solver": solver.linear_solver,
         "solver_options": {
-            k: getattr(options, k) for k in ("rtol", "contact_stiffness", "contact_smoothing")
+            k: getattr(options, k)
+            for k in ("rtol", "contact_stiffness", "contact_smoothing", "max_factor_reuse")
+            if hasattr(options, k)
         },
         "seconds_cold_first_step": cold,
         "config": OmegaConf.to_container(cfg, resolve=True),
@@ -101,6 +111,8 @@ def main(cfg: DictConfig) -> None:
                 "newton_iterations_per_problem": newton.tolist(),
                 "status_per_problem": eq.status.tolist(),
                 "krylov_iterations_total": int(np.sum(krylov)),
+                # matrix factorizations of all problems (direct and dense solvers; None for Krylov solvers)
+                "factorizations": factorizations(solver),
                 "converged": int(eq.converged.sum()),
                 "status_counts": {str(k): int(v) for k, v in zip(*np.unique(eq.status, return_counts=True))},
                 "max_penetration_m": float(eq.max_penetration.max()),
@@ -115,7 +127,10 @@ def main(cfg: DictConfig) -> None:
                 flush=True,
             )
 
-    squeeze_ramp(solver, cfg.max_force, cfg.steps, progress=cfg.progress, on_step=record_step)
+    final = squeeze_ramp(solver, cfg.max_force, cfg.steps, progress=cfg.progress, on_step=record_step)[-1]
+    if cfg.fields_out:
+        # final displacement fields and statuses, to compare runs with different solver settings
+        np.savez(cfg.fields_out, displacement=final.displacement, status=final.status)
     if cfg.profile_phases:
         # a second run of the same ramp on a fresh solver, every phase synchronized and timed
         from defgraspnets.fem.profiling import PhaseTimer
@@ -137,6 +152,7 @@ def main(cfg: DictConfig) -> None:
                     "newton_iterations_total",
                     "krylov_iterations_total",
                     "converged",
+                    "factorizations",
                 )
             },
             indent=None,

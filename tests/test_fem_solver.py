@@ -11,9 +11,9 @@ from defgraspnets import fem
 L = 0.02
 
 
-def _grasp_problem(batch, device="cpu", linear_solver="auto", model="corotated", select=None):
+def _grasp_problem(batch, device="cpu", linear_solver="auto", model="corotated", select=None, **options):
     """A box squeezed by two finger pads (shared force dof) with friction, rotated per problem; ``select``
-    keeps only those problems of the batch (same materials and poses)."""
+    keeps only those problems of the batch (same materials and poses); ``options``: more SolverOptions."""
     mesh = fem.TetMesh.box(
         size=(L, 0.75 * L, 1.25 * L), divisions=(4, 4, 4), origin=(-L / 2, -0.375 * L, -0.625 * L)
     )
@@ -32,7 +32,7 @@ def _grasp_problem(batch, device="cpu", linear_solver="auto", model="corotated",
         [mats[b] for b in select],
         batch_size=len(select),
         device=device,
-        options=fem.SolverOptions(linear_solver=linear_solver),
+        options=fem.SolverOptions(linear_solver=linear_solver, **options),
     )
     poses_l, poses_r = [], []
     for b in range(batch):
@@ -340,8 +340,9 @@ def test_dense_solver_matches_numpy_with_cholesky_lu_fallback_and_factor_reuse()
         for b in (0, 2):
             np.testing.assert_allclose(x[b], np.linalg.solve(dense[b], rhs[b]), rtol=1e-8, atol=1e-12)
         np.testing.assert_array_equal(x[1], 0.0)
-        assert system._dense_factors["ids"] == [0, 2]  # factors kept for the next right-hand side
-        assert list(system._dense_factors["lu"]) == [1]  # problem 2 (second in the chunk) fell back to LU
+        assert sorted(system._dense_factors) == [0, 2]  # factors kept for the next right-hand side
+        assert system._dense_factors[0][0] == "cholesky" and system._dense_factors[2][0] == "lu"
+    np.testing.assert_array_equal(system.factorizations, [1, 0, 1])  # the second solve reused them
     system.zero()
     assert not system._dense_factors
 

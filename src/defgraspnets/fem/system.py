@@ -164,12 +164,38 @@ class BatchedSystem:
         )
         self._amg: dict[int, list] = {}  # problem -> [multigrid hierarchy, CG iterations when built]
         self._dense_index = None  # flat index of every block entry in one problem's dense matrix
-        self._dense_factors: dict = {}  # factors of the current matrix: problem ids, Cholesky, LU fallbacks
+        # factorizations of the direct and dense solvers, per problem: SuperLU objects, and Cholesky factors L
+        # or LU fallbacks (LU, pivots); see ``keep_factors``
+        self._direct_factors: dict[int, object] = {}
+        self._dense_factors: dict[int, tuple] = {}
+        #: keep each problem's factorization across matrix changes (``zero``), to be reused by later Newton
+        #: steps (chord / modified Newton, see SolverOptions.max_factor_reuse); False: a new matrix drops them
+        self.keep_factors = False
+        #: matrix factorizations per problem so far (direct and dense solvers)
+        self.factorizations = np.zeros(batch_size, dtype=np.int64)
+        #: per problem: the last direct or dense solve used a factorization made in that call
+        self.fresh_factor = np.zeros(batch_size, dtype=bool)
 
     def zero(self):
         self.values.zero_()
         self.gradient.zero_()
-        self._dense_factors.clear()  # a new matrix follows
+        if not self.keep_factors:
+            self.forget_factors()  # a new matrix follows
+
+    def forget_factors(self, mask: np.ndarray | None = None):
+        """Drop the stored factorizations of the masked problems (all by default)."""
+        for p in range(self.batch_size) if mask is None else np.nonzero(mask)[0]:
+            self._direct_factors.pop(int(p), None)
+            self._dense_factors.pop(int(p), None)
+
+    def _to_factor(self, todo, stored: dict, refactor: np.ndarray | None) -> list[int]:
+        """The problems of ``todo`` that need a new factorization: those asked to (``refactor``) and those
+        without a stored one. Records ``fresh_factor`` and counts them in ``factorizations``."""
+        fresh = [p for p in todo if p not in stored or (refactor is not None and refactor[p])]
+        self.fresh_factor[:] = False
+        self.fresh_factor[fresh] = True
+        self.factorizations[fresh] += 1
+        return fresh
 
     def constrain(self, free, diagonal_shift):
         wp.launch(
@@ -216,7 +242,7 @@ class BatchedSystem:
     def _set_increment(self, x: np.ndarray):
         self.increment.assign(wp.array(x.reshape(-1, 3), dtype=wp.vec3d, device=self.device))
 
-    def solve_direct(self) -> tuple[int, float]:
+    def solve_direct(self, refactor: np.ndarray | None = None) -> tuple[int, float]:
         """Sparse LU (SuperLU) of each problem's Hessian on the host, one factorization per problem.
 
         Problems are factored one by one, never as one block-diagonal matrix: the fill-reducing ordering
@@ -227,7 +253,11 @@ class BatchedSystem:
         The Hessian is symmetric, so SuperLU runs in its symmetric mode: minimum-degree ordering of A^T + A
         and diagonal pivots preferred, about half the fill and time of the general COLAMD ordering on
         tetrahedral meshes (11k unknowns: 4.7M vs 7.6M factor entries, 0.45 vs 0.73 s).
-        Returns (1, residual norm of all problems)."""
+
+        ``refactor`` (B,) marks the problems whose stored factorization is out of date; the others solve
+        with their stored one (an earlier matrix when ``keep_factors``: a chord step), and a problem without
+        one is factored. None: no stored factorization is out of date (a new right-hand side).
+        Returns (1, residual norm of the freshly factored problems)."""
         B, rpp, nnz = self.batch_size, self.pattern.rows_per_problem, self.pattern.nnz
         n = 3 * rpp
         values = self.values.numpy()[: B * nnz].reshape(B, nnz, 3, 3)
@@ -236,17 +266,23 @@ class BatchedSystem:
         b_all = self.rhs.numpy().reshape(B, n)
         x = np.zeros_like(b_all)
         residual2 = 0.0
-        for p in np.nonzero(np.abs(b_all).max(axis=1) > 0)[0]:
-            A = sp.bsr_matrix((values[p], cols, offsets), shape=(n, n)).tocsc()
-            lu = spla.splu(
-                A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.01, options={"SymmetricMode": True}
-            )
-            x[p] = lu.solve(b_all[p])
-            residual2 += float(np.sum((A @ x[p] - b_all[p]) ** 2))
+        todo = np.nonzero(np.abs(b_all).max(axis=1) > 0)[0].tolist()
+        fresh = set(self._to_factor(todo, self._direct_factors, refactor))
+        for p in todo:
+            if p in fresh:
+                A = sp.bsr_matrix((values[p], cols, offsets), shape=(n, n)).tocsc()
+                self._direct_factors[p] = spla.splu(
+                    A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.01, options={"SymmetricMode": True}
+                )
+            x[p] = self._direct_factors[p].solve(b_all[p])
+            if p in fresh:
+                residual2 += float(np.sum((A @ x[p] - b_all[p]) ** 2))
         self._set_increment(x)
         return 1, float(np.sqrt(residual2))
 
-    def solve_dense(self, memory_fraction: float = 0.5) -> tuple[int, float]:
+    def solve_dense(
+        self, refactor: np.ndarray | None = None, memory_fraction: float = 0.5
+    ) -> tuple[int, float]:
         """Batched dense factorization of each problem's Hessian on the system's device (PyTorch: cuSOLVER
         on CUDA, LAPACK on the CPU), exact to round-off.
 
@@ -254,9 +290,11 @@ class BatchedSystem:
         are factored in chunks that fit ``memory_fraction`` of the free device memory. Cholesky first; a
         problem whose matrix is not positive definite (the exact, unprojected Hessian away from a stable
         equilibrium) is solved by LU with partial pivoting instead. Problems whose right-hand side is zero
-        (converged or inactive) are skipped. The factors are kept until the matrix changes
-        (:meth:`zero`), so a second right-hand side on the same matrix (the gas's Sherman-Morrison solve)
-        costs two triangular solves. Returns (1, largest relative residual of the factored chunks)."""
+        (converged or inactive) are skipped. The factors are kept until the matrix changes (:meth:`zero`),
+        or, with ``keep_factors``, until :meth:`forget_factors` (one (3R)^2 float64 factor per problem
+        stays allocated). ``refactor`` as in :meth:`solve_direct`: a problem not marked solves with its
+        stored factor by two triangular solves. Returns (1, largest relative residual of the freshly
+        factored chunks)."""
         import torch
 
         B, rpp, nnz = self.batch_size, self.pattern.rows_per_problem, self.pattern.nnz
@@ -272,6 +310,7 @@ class BatchedSystem:
         increment = wp.to_torch(self.increment).reshape(B, n)
         increment.zero_()
         todo = torch.nonzero(rhs.abs().amax(dim=1) > 0).flatten().tolist()
+        fresh = self._to_factor(todo, self._dense_factors, refactor)
         if not todo:
             return 1, 0.0
         bytes_per_problem = 3 * n * n * 8  # matrix, factor, workspace
@@ -281,47 +320,68 @@ class BatchedSystem:
         else:
             budget = 2e9
         chunk = max(1, int(budget // bytes_per_problem))
-        cached = self._dense_factors.get("ids")
-        if cached is not None and set(todo) <= set(cached):
-            groups = [cached]  # same matrix, new right-hand side: reuse the factors
-        else:
-            self._dense_factors.clear()
-            groups = [todo[i : i + chunk] for i in range(0, len(todo), chunk)]
         worst = 0.0
-        for ids in groups:
+        for ids in [fresh[i : i + chunk] for i in range(0, len(fresh), chunk)]:
             index = torch.as_tensor(ids, device=dev)
             A = torch.zeros(len(ids), n * n, dtype=torch.float64, device=dev)
             A[:, self._dense_index] = values[index]
             A = A.view(len(ids), n, n)
-            if ids is cached:
-                L, lu = self._dense_factors["cholesky"], self._dense_factors["lu"]
-            elif len(ids) <= DENSE_LOOP_MAX_PROBLEMS:
+            if len(ids) <= DENSE_LOOP_MAX_PROBLEMS:
                 # a few problems: one factorization each (cuSOLVER's batched potrf has a large fixed cost)
                 factors = [torch.linalg.cholesky_ex(A[k]) for k in range(len(ids))]
-                L = torch.stack([f[0] for f in factors])
-                info = torch.stack([f[1] for f in factors])
+                L = [f[0] for f in factors]
+                info = [int(f[1]) for f in factors]
             else:
                 L, info = torch.linalg.cholesky_ex(A)
-            if ids is not cached:
+                # kept factors are copied out of the batch, which would otherwise stay allocated as a whole
+                L = [L[k].clone() if self.keep_factors else L[k] for k in range(len(ids))]
+                info = info.tolist()
+            for k, p in enumerate(ids):
                 # not positive definite (exact Hessian off a stable equilibrium): LU with partial pivoting
-                lu = {k: torch.linalg.lu_factor(A[k]) for k in torch.nonzero(info).flatten().tolist()}
-                if len(groups) == 1:
-                    self._dense_factors.update(ids=ids, cholesky=L, lu=lu)
-            b_ = rhs[index].unsqueeze(2)
-            # two triangular solves (trsm), not cholesky_solve: its batched potrs costs ~36 ms for any batch
-            # of two or more 2883-unknown problems on an H100, the triangular solves 0.9-7 ms
-            y = torch.linalg.solve_triangular(L, b_, upper=False)
-            x = torch.linalg.solve_triangular(L.transpose(1, 2), y, upper=True)
-            for k, (LU, pivots) in lu.items():
-                x[k] = torch.linalg.lu_solve(LU, pivots, b_[k])
-            increment[index] = x.squeeze(2)
-            res = torch.linalg.vector_norm(torch.bmm(A, x) - b_, dim=(1, 2))
-            norm = torch.linalg.vector_norm(b_, dim=(1, 2)).clamp_min(torch.finfo(torch.float64).tiny)
+                self._dense_factors[p] = (
+                    ("lu", *torch.linalg.lu_factor(A[k])) if info[k] else ("cholesky", L[k])
+                )
+            x = self._dense_substitute(ids, rhs)
+            increment[index] = x
+            b_ = rhs[index]
+            res = torch.linalg.vector_norm(torch.bmm(A, x.unsqueeze(2)).squeeze(2) - b_, dim=1)
+            norm = torch.linalg.vector_norm(b_, dim=1).clamp_min(torch.finfo(torch.float64).tiny)
             worst = max(worst, float((res / norm).max()))
-            del A, x
+            del A, L, x
+        fresh = set(fresh)
+        reused = [p for p in todo if p not in fresh]
+        for ids in [reused[i : i + chunk] for i in range(0, len(reused), chunk)]:
+            increment[torch.as_tensor(ids, device=dev)] = self._dense_substitute(ids, rhs)
         if dev.type == "cuda":
             torch.cuda.synchronize(dev)
         return 1, worst
+
+    def _dense_substitute(self, ids: list[int], rhs):
+        """(len(ids), n) solutions of the listed problems' right-hand sides with their stored dense factors:
+        two triangular solves (trsm) per Cholesky factor, not cholesky_solve (its batched potrs costs ~36 ms
+        for any batch of two or more 2883-unknown problems on an H100, the triangular solves 0.9-7 ms), or
+        an LU solve. On CUDA the Cholesky factors are stacked and solved as one batch; on the CPU one by one
+        (no copies of the factors; LAPACK solves a batch one matrix at a time anyway)."""
+        import torch
+
+        b = rhs[torch.as_tensor(ids, device=rhs.device)].unsqueeze(2)
+        x = torch.empty_like(b)
+        factors = [self._dense_factors[p] for p in ids]
+        chol = [k for k, f in enumerate(factors) if f[0] == "cholesky"]
+        if rhs.device.type == "cuda" and len(chol) > 1:
+            L = torch.stack([factors[k][1] for k in chol])
+            k = torch.as_tensor(chol, device=rhs.device)
+            y = torch.linalg.solve_triangular(L, b[k], upper=False)
+            x[k] = torch.linalg.solve_triangular(L.transpose(1, 2), y, upper=True)
+        else:
+            for k in chol:
+                L = factors[k][1]
+                y = torch.linalg.solve_triangular(L, b[k], upper=False)
+                x[k] = torch.linalg.solve_triangular(L.T, y, upper=True)
+        for k, f in enumerate(factors):
+            if f[0] == "lu":
+                x[k] = torch.linalg.lu_solve(f[1], f[2], b[k])
+        return x.squeeze(2)
 
     def solve_amg(self, near_nullspace: np.ndarray, rtol: float, maxiter: int) -> tuple[int, float]:
         """CG preconditioned by smoothed-aggregation algebraic multigrid (pyamg) on the host, with the
