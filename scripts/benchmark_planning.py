@@ -43,7 +43,7 @@ PREDICTOR_OPTIONS = (
     "activation_checkpointing",
     "static_shapes",
     "share_object",
-    "fused_edges",
+    "fused_message_passing",
 )
 
 
@@ -152,7 +152,7 @@ def main(cfg: DictConfig) -> None:
             **v,
             "static_shapes": predictor.static_shapes,
             "share_object": predictor.share_object,
-            "fused_edges": predictor.fused_edges,
+            "fused_message_passing": predictor.fused_message_passing,
         }
         compiles = _Compiles()
         t = time.perf_counter()

@@ -39,7 +39,7 @@ def main(cfg: DictConfig) -> dict:
         device=device,
         precision=cfg.precision,
         compile=cfg.compile,
-        fused_edges=cfg.fused_edges,
+        fused_message_passing=cfg.fused_message_passing,
     )
     mesh = resolve_object_mesh(cfg.object, cfg.box.size, cfg.box.divisions, cfg.target_nodes, cfg.mesher)
     objective = instantiate(cfg.objective, _convert_="all")

@@ -9,7 +9,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from defgraspnets.models import fused_edges as fe
+from defgraspnets.models import fused_message_passing as fe
 from defgraspnets.models.meshgraphnet import EdgeMLP, EncodeProcessDecode
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -50,7 +50,7 @@ def test_fused_network_equals_the_op_by_op_network(hidden_layers):
     )
     with torch.no_grad():
         ref = net(node, mesh, contact, mesh_index, contact_index, mask)
-        net.fused_edges = True
+        net.fused_message_passing = True
         out = net(node, mesh, contact, mesh_index, contact_index, mask)
     torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-5 * float(ref.abs().max()))
     # the masked (padding) contact edges change nothing: a graph without them gives the same outputs
@@ -84,7 +84,7 @@ def test_the_fused_path_serves_passes_without_gradients_only():
     """With autograd on, the network keeps the differentiable op-by-op blocks (and never calls a kernel)."""
     mesh_index, contact_index, mask, g = _graph()
     net = _perturbed(EncodeProcessDecode(7, 5, 6, 4, latent=16, num_blocks=2))
-    net.fused_edges = True
+    net.fused_message_passing = True
     node = torch.randn(40, 7, generator=g, requires_grad=True)
     mesh, contact = torch.randn(200, 5, generator=g), torch.randn(30, 6, generator=g)
     calls = []
@@ -112,10 +112,10 @@ def test_the_fused_path_serves_passes_without_gradients_only():
 def test_availability_and_clear_errors(monkeypatch):
     monkeypatch.setenv("TRITON_INTERPRET", "0")
     # float32 tile products are not compiled for the GPU, and without the interpreter the CPU has no kernels
-    assert not fe.fused_edges_available("cpu", torch.bfloat16)
-    assert not fe.fused_edges_available("cuda", torch.float32)
-    assert fe.fused_edges_available("cuda", torch.bfloat16) == (fe.triton is not None)
-    assert not fe.fused_edges_available("cuda", torch.float64)
+    assert not fe.fused_message_passing_available("cpu", torch.bfloat16)
+    assert not fe.fused_message_passing_available("cuda", torch.float32)
+    assert fe.fused_message_passing_available("cuda", torch.bfloat16) == (fe.triton is not None)
+    assert not fe.fused_message_passing_available("cuda", torch.float64)
     if fe.triton is None:
         pytest.skip("Triton is not installed")
     mlp = EdgeMLP(16, 2)
@@ -145,7 +145,7 @@ def test_bf16_fused_network_is_as_accurate_as_the_bf16_op_by_op_network():
         net.to(torch.bfloat16)
         low = [x.cuda().bfloat16() for x in inputs]
         plain = net(*low, *idx).float()
-        net.fused_edges = True
+        net.fused_message_passing = True
         fused = net(*low, *idx).float()
     err_plain = float((plain - ref).abs().mean())
     err_fused = float((fused - ref).abs().mean())

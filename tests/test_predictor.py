@@ -184,19 +184,19 @@ def test_precision_options(trained):
 
 
 def test_fused_message_passing_predicts_the_same_fields(trained):
-    """``fused_edges=True`` (Triton kernels; here in the CPU interpreter, float32) gives the op-by-op fields;
-    it is off by default on the CPU, and refused where the kernels cannot run."""
-    from defgraspnets.models import fused_edges as fe
+    """``fused_message_passing=True`` (Triton kernels; here in the CPU interpreter, float32) gives the
+    op-by-op fields; it is off by default on the CPU, and refused where the kernels cannot run."""
+    from defgraspnets.models import fused_message_passing as fe
 
     module, dm, path = trained
     sh, mesh, geometry, gripper, dist = _grasp_inputs(dm)
     kw = dict(fingers=geometry, gripper_pose=gripper, closing_distance=dist)
     plain = DefGraspNetsPredictor.from_checkpoint(path)
-    assert not plain.fused_edges
+    assert not plain.fused_message_passing
     if not (fe.triton is not None and fe._interpreting()):
         pytest.skip("needs Triton's CPU interpreter (TRITON_INTERPRET=1)")
     ref = plain.predict(mesh, 5.0, 2e5, **kw)
-    fused = DefGraspNetsPredictor.from_checkpoint(path, fused_edges=True)
+    fused = DefGraspNetsPredictor.from_checkpoint(path, fused_message_passing=True)
     out = fused.predict(mesh, 5.0, 2e5, **kw)
     torch.testing.assert_close(out.stress, ref.stress, rtol=1e-4, atol=1e-3)
     torch.testing.assert_close(out.displacement, ref.displacement, rtol=1e-4, atol=1e-9)
@@ -209,5 +209,5 @@ def test_fused_message_passing_predicts_the_same_fields(trained):
 def test_fused_message_passing_is_refused_where_it_cannot_run(trained, monkeypatch):
     module, dm, path = trained
     monkeypatch.setenv("TRITON_INTERPRET", "0")
-    with pytest.raises(ValueError, match="fused_edges needs Triton, a CUDA device"):
-        DefGraspNetsPredictor.from_checkpoint(path, fused_edges=True)
+    with pytest.raises(ValueError, match="fused_message_passing needs Triton, a CUDA device"):
+        DefGraspNetsPredictor.from_checkpoint(path, fused_message_passing=True)

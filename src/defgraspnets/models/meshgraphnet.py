@@ -24,8 +24,9 @@ Exact reformulations for batches of grasps of one object (planning):
        ``log10 E``) are the same in every graph of the batch, so their encoder latents are computed once and
        broadcast; only finger nodes, finger mesh edges and contact edges are encoded per grasp.
 
-Fused message passing for inference (``EncodeProcessDecode.fused_edges``): passes without gradients may run
-each block as three Triton kernels (:mod:`~defgraspnets.models.fused_edges`; same function up to rounding).
+Fused message passing for inference (``EncodeProcessDecode.fused_message_passing``): passes without
+gradients may run each block as three Triton kernels (:mod:`~defgraspnets.models.fused_message_passing`;
+same function up to rounding).
 
 Ablations (thesis Table 7.2) by constructor arguments of :class:`DefGraspNet`:
     V1 ``outputs="separate"``: two networks, one for stress, one for displacement ("joint": one network).
@@ -47,7 +48,7 @@ from torch.utils.checkpoint import checkpoint
 from tqdm.auto import tqdm
 
 from defgraspnets.data.normalization import Normalizer, TargetScaling
-from defgraspnets.models.fused_edges import fused_edge_update, fused_node_update
+from defgraspnets.models.fused_message_passing import fused_edge_update, fused_node_update
 from defgraspnets.models.graph import NODE_FINGER, GraspGraph, MultigraphFeaturizer
 
 __all__ = ["DefGraspNet", "EdgeMLP", "EncodeProcessDecode", "MLP", "ProcessorBlock"]
@@ -151,8 +152,8 @@ class ProcessorBlock(nn.Module):
         contact_index: Tensor,
         contact_mask: Tensor | None = None,
     ):
-        """:meth:`forward` in three fused kernels (:mod:`~defgraspnets.models.fused_edges`): each edge set
-        updated and summed by target, then the nodes updated (forward only, no autograd)."""
+        """:meth:`forward` in three fused kernels (:mod:`~defgraspnets.models.fused_message_passing`): each
+        edge set updated and summed by target, then the nodes updated (forward only, no autograd)."""
         mesh, mesh_sum = fused_edge_update(self.mesh_edge, mesh, node, mesh_index)
         contact, contact_sum = fused_edge_update(
             self.contact_edge, contact, node, contact_index, contact_mask
@@ -187,8 +188,8 @@ class EncodeProcessDecode(nn.Module):
         # activation checkpointing: with gradients on, keep only each block's inputs and recompute its
         # intermediate activations in the backward pass (memory ~ L x latents instead of L x MLP layers)
         self.activation_checkpointing = False
-        # fused edge updates (Triton) for passes without gradients, see :mod:`.fused_edges`
-        self.fused_edges = False
+        # fused edge updates (Triton) for passes without gradients, see :mod:`.fused_message_passing`
+        self.fused_message_passing = False
 
     def encode_object(self, node: Tensor, mesh: Tensor) -> tuple[Tensor, Tensor]:
         """Latents (N, l), (E_o, l) of the object part shared by all graphs of a batch (see :meth:`forward`)
@@ -222,7 +223,7 @@ class EncodeProcessDecode(nn.Module):
             h = torch.cat([h_o.expand(g, -1, -1), self.node_encoder(node)], dim=1).flatten(0, 1)
             m = torch.cat([m_o.expand(g, -1, -1), self.mesh_encoder(mesh)], dim=1).flatten(0, 1)
         recompute = self.activation_checkpointing and torch.is_grad_enabled()
-        fused = self.fused_edges and not torch.is_grad_enabled()
+        fused = self.fused_message_passing and not torch.is_grad_enabled()
         for block in self.blocks:
             if fused:
                 h, m, c = block.forward_fused(h, m, c, mesh_index, contact_index, contact_mask)

@@ -21,8 +21,8 @@ Speed (one H100, L = 15, latent 128; 100 grasps of a 1000-vertex object with two
 in fp32, 76 ms with ``compile=True``, 49 ms with ``precision="bf16", compile=True`` (53 ms end to end;
 stress within ~2.5 % of fp32). A 4096-vertex object: 669 ms fp32, 258 ms fp32 compiled. Forward + backward
 of 10 grasps (fp32, eager): 72 ms. The cost is the memory traffic of the per-edge MLPs; the fused Triton
-message passing (``fused_edges``) keeps each edge tile on chip: 100 grasps of a 1573-vertex box, bf16, network
-47 ms fused against 101 ms compiled (README, planning benchmark).
+message passing (``fused_message_passing``) keeps each edge tile on chip: 100 grasps of a 1573-vertex box,
+bf16, network 47 ms fused against 101 ms compiled (README, planning benchmark).
 
 All tensor inputs may require grad: :meth:`DefGraspNetsPredictor.predict` with ``grad=True`` keeps the
 graph so that an objective ``Q(out)`` can be back-propagated to finger vertices, gripper poses or closing
@@ -40,7 +40,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from defgraspnets.models.fused_edges import fused_edges_available
+from defgraspnets.models.fused_message_passing import fused_message_passing_available
 from defgraspnets.models.graph import (
     FingerTemplate,
     GraspGraph,
@@ -150,10 +150,10 @@ class DefGraspNetsPredictor:
         share_object: encode the object part of the multigraph once per batch and broadcast it to every
             grasp (:meth:`DefGraspNet.forward_shared`; exact up to rounding) when the network allows it and
             all grasps share one Young's modulus.
-        fused_edges: evaluate passes without gradients (scoring, line-search trials) with the fused Triton
-            edge update (:mod:`~defgraspnets.models.fused_edges`; same function up to rounding); passes with
-            gradients keep the op-by-op network. ``None`` (default): on where the kernels run (Triton, CUDA,
-            ``precision="bf16"``). ``True`` where they cannot run is an error.
+        fused_message_passing: evaluate passes without gradients (scoring, line-search trials) with the fused
+            Triton kernels (:mod:`~defgraspnets.models.fused_message_passing`; same function up to rounding);
+            passes with gradients keep the op-by-op network. ``None`` (default): on where the kernels run
+            (Triton, CUDA, ``precision="bf16"``). ``True`` where they cannot run is an error.
 
     ``timer``: an optional callable ``timer(stage)`` returning a context manager (e.g.
     :class:`defgraspnets.planning.timing.StageTimer`) wrapped around the stages ``fingers``, ``graph``,
@@ -171,7 +171,7 @@ class DefGraspNetsPredictor:
         activation_checkpointing: bool = False,
         static_shapes: bool | None = None,
         share_object: bool = True,
-        fused_edges: bool | None = None,
+        fused_message_passing: bool | None = None,
     ):
         if not net.normalized:
             raise ValueError("the network has no normalization statistics (not trained)")
@@ -183,17 +183,19 @@ class DefGraspNetsPredictor:
             self.net.double()
         elif precision == "bf16":
             self.net.networks.to(torch.bfloat16)
-        available = fused_edges_available(self.device, self.net.networks[0].node_encoder[0].weight.dtype)
+        available = fused_message_passing_available(
+            self.device, self.net.networks[0].node_encoder[0].weight.dtype
+        )
         auto = available and self.device.type == "cuda"  # never Triton's (slow) CPU interpreter by default
-        if fused_edges and not available:
+        if fused_message_passing and not available:
             raise ValueError(
-                f"fused_edges needs Triton, a CUDA device and precision 'bf16', got {self.device} and "
-                f"{precision!r}"
+                "fused_message_passing needs Triton, a CUDA device and precision 'bf16', got "
+                f"{self.device} and {precision!r}"
             )
-        self.fused_edges = auto if fused_edges is None else bool(fused_edges)
+        self.fused_message_passing = auto if fused_message_passing is None else bool(fused_message_passing)
         for network in self.net.networks:
             network.activation_checkpointing = bool(activation_checkpointing)
-            network.fused_edges = self.fused_edges
+            network.fused_message_passing = self.fused_message_passing
         self.static_shapes = bool(compile) if static_shapes is None else bool(static_shapes)
         self.share_object = bool(share_object)
         if compile:

@@ -36,7 +36,7 @@ except ImportError:  # pragma: no cover - depends on the installation
     triton = None
     tl = None
 
-__all__ = ["fused_edge_update", "fused_edges_available", "fused_node_update"]
+__all__ = ["fused_edge_update", "fused_message_passing_available", "fused_node_update"]
 
 BLOCK_ROWS = 64  # edges or nodes per program (a 64 x l tile)
 NUM_WARPS = 4
@@ -46,7 +46,7 @@ def _interpreting() -> bool:
     return os.environ.get("TRITON_INTERPRET", "0") == "1"
 
 
-def fused_edges_available(device: torch.device | str, dtype: torch.dtype = torch.bfloat16) -> bool:
+def fused_message_passing_available(device: torch.device | str, dtype: torch.dtype = torch.bfloat16) -> bool:
     """Whether the fused kernels run on ``device`` for latents of ``dtype``: Triton installed, and CUDA with
     bfloat16 or float16 latents (the tensor-core path they are made for; a float32 tile product would be
     compiled to scalar FMAs, slow to compile and to run), or the interpreter with any supported dtype."""
@@ -209,7 +209,7 @@ def _tail_parameters(rest, latent: int) -> tuple[Tensor, Tensor, Tensor, Tensor,
 def _check(latents: tuple[Tensor, ...], weight: Tensor) -> None:
     if triton is None:
         raise RuntimeError("fused message passing needs Triton (pip install triton)")
-    if not fused_edges_available(weight.device, weight.dtype):
+    if not fused_message_passing_available(weight.device, weight.dtype):
         raise RuntimeError(
             "fused message passing runs on CUDA with bfloat16 or float16 weights (or with "
             f"TRITON_INTERPRET=1), got {weight.dtype} on {weight.device}"
