@@ -13,6 +13,19 @@ model only needs ``configs/model/<name>.yaml``, ``configs/data/<name>.yaml`` and
 ``configs/experiment/<name>.yaml``.
 Outputs (config, checkpoints, CSV and W&B logs) go to Hydra's run directory, ``logs/<task_name>/runs/<time>``.
 W&B runs offline unless ``WANDB_MODE`` is set otherwise. Unknown config keys are rejected (struct mode).
+
+Several processes (``trainer=ddp``):
+- one node, ``python train.py ... trainer=ddp``: Lightning starts ranks 1..N-1 by re-running this command
+  with ``hydra.run.dir=<rank 0's run dir> hydra.output_subdir=null``, so all ranks share one run directory
+  (and its log file) and only rank 0 writes the config, checkpoints and logs.
+- ``srun`` (SLURM) or ``torchrun`` start every rank themselves; each would resolve ``${now:...}`` of the run
+  directory on its own. Unless ``hydra.run.dir`` is given, it is pinned to
+  ``logs/<task_name>/runs/slurm_<job>_<step>`` (``torchrun_<run id>``) so that every rank agrees.
+- a Hydra multirun (``-m``) cannot use Lightning's re-launching (each rank would re-run the whole sweep):
+  ``-m`` with a DDP trainer that launches its own processes is refused; sweep DDP jobs through
+  hydra-submitit-launcher (each job is a SLURM job whose tasks are the ranks) or run them one by one.
+- testing runs on all ranks too: the metrics gather every rank's per-sample summaries and drop the samples
+  that the DistributedSampler repeats, so ``test/*`` are those of the whole test split.
 """
 
 from __future__ import annotations
@@ -46,6 +59,36 @@ def instantiate_group(cfg: DictConfig | None, what: str) -> list:
     return out
 
 
+def pin_run_dir_for_external_launch(argv: list[str]) -> None:
+    """Give the ranks that srun / torchrun start one Hydra run directory (appends ``hydra.run.dir``)."""
+    if any(a in ("-m", "--multirun") or a.lstrip("+").startswith("hydra.run.dir=") for a in argv[1:]):
+        return
+    env = os.environ
+    run = None
+    if int(env.get("SLURM_NTASKS", "1") or 1) > 1 and env.get("SLURM_JOB_ID"):
+        run = f"slurm_{env['SLURM_JOB_ID']}_{env.get('SLURM_STEP_ID', '0')}"
+    elif env.get("TORCHELASTIC_RUN_ID", "none") != "none":
+        run = f"torchrun_{env['TORCHELASTIC_RUN_ID']}"
+    if run:
+        argv.append(f"hydra.run.dir=${{paths.log_dir}}/${{task_name}}/runs/{run}")
+
+
+def check_launch(trainer) -> None:
+    """Refuse a Hydra multirun whose trainer would re-launch this script for its other ranks."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    if trainer.world_size <= 1 or not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
+        return
+    if not trainer.strategy.cluster_environment.creates_processes_externally:
+        raise ValueError(
+            "a Hydra multirun (-m) cannot use a multi-process trainer that launches its own processes "
+            f"(strategy {type(trainer.strategy).__name__}, {trainer.world_size} processes): Lightning would "
+            "re-run the whole sweep in every rank. Run the DDP jobs one at a time, or sweep with "
+            "hydra-submitit-launcher (hydra/launcher=submitit_slurm, one SLURM task per GPU)."
+        )
+
+
 def apply_extras(cfg: DictConfig) -> None:
     extras = cfg.get("extras") or {}
     if extras.get("ignore_warnings"):
@@ -69,6 +112,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     loggers = instantiate_group(cfg.get("logger"), "logger")
     log.info("instantiating trainer <%s>", cfg.trainer._target_)
     trainer = hydra.utils.instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
+    check_launch(trainer)
     for lg in loggers:
         lg.log_hyperparams({"config": OmegaConf.to_container(cfg, resolve=True)})
 
@@ -120,4 +164,7 @@ def main(cfg: DictConfig) -> float | None:
 
 
 if __name__ == "__main__":
+    import sys
+
+    pin_run_dir_for_external_launch(sys.argv)
     main()

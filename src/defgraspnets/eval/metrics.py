@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["FieldMetrics", "grouped_kendall_tau", "kendall_tau"]
+__all__ = ["FieldMetrics", "PerSampleSums", "grouped_kendall_tau", "kendall_tau"]
 
 
 def kendall_tau(x, y) -> float:
@@ -51,7 +51,51 @@ def grouped_kendall_tau(groups, pred, true) -> tuple[float, int]:
     return (float(np.mean(taus)), len(taus)) if taus else (float("nan"), 0)
 
 
-class FieldMetrics:
+class PerSampleSums:
+    """Per-sample summaries of an evaluation split (one row per graph, keyed by its ``sample`` id (shard,
+    k, g, s)), kept on the CPU and mergeable over DDP ranks. Subclasses name their columns in ``_KEYS`` (the
+    first being ``sample``) and append a batch's rows with :meth:`_append`."""
+
+    _KEYS: tuple[str, ...] = ("sample",)
+
+    def __init__(self):
+        self.reset()
+
+    def reset(self) -> None:
+        self._parts: dict[str, list[np.ndarray]] = defaultdict(list)
+
+    def __len__(self) -> int:
+        return int(sum(len(p) for p in self._parts["sample"]))
+
+    def _append(self, values: dict[str, Tensor]) -> None:
+        for k in self._KEYS:
+            self._parts[k].append(values[k].detach().cpu().numpy())
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Per-sample summaries, concatenated."""
+        if not len(self):
+            return {k: np.zeros((0, 4) if k == "sample" else (0,)) for k in self._KEYS}
+        return {k: np.concatenate(self._parts[k]) for k in self._KEYS}
+
+    def gather(self) -> None:
+        """Merge the summaries of all DDP ranks (no-op without torch.distributed).
+
+        Samples seen by several ranks (a DistributedSampler pads the last batch with repeats) count once.
+        """
+        import torch.distributed as dist
+
+        if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
+            return
+        everyone: list = [None] * dist.get_world_size()
+        dist.all_gather_object(everyone, self.arrays())
+        merged = {k: np.concatenate([part[k] for part in everyone]) for k in self._KEYS}
+        _, first = np.unique(merged["sample"], axis=0, return_index=True)
+        self.reset()
+        for k in self._KEYS:
+            self._parts[k].append(merged[k][np.sort(first)])
+
+
+class FieldMetrics(PerSampleSums):
     """Accumulates per-sample summaries of predicted vs true fields; :meth:`compute` gives the metrics.
 
     Per sample (graph) it keeps: ``sample`` (shard, k, g, s), ``object_id``, ``E`` [Pa], ``force`` [N], mean
@@ -75,15 +119,6 @@ class FieldMetrics:
         "mean_deform_pred",
         "mean_deform_true",
     )
-
-    def __init__(self):
-        self.reset()
-
-    def reset(self) -> None:
-        self._parts: dict[str, list[np.ndarray]] = defaultdict(list)
-
-    def __len__(self) -> int:
-        return int(sum(len(p) for p in self._parts["nodes"]))
 
     @torch.no_grad()
     def update(self, stress_pred: Tensor, displacement_pred: Tensor, batch) -> None:
@@ -124,31 +159,7 @@ class FieldMetrics:
             "mean_deform_pred": per_graph(np_) / nodes,
             "mean_deform_true": per_graph(nt) / nodes,
         }
-        for k, v in values.items():
-            self._parts[k].append(v.detach().cpu().numpy())
-
-    def arrays(self) -> dict[str, np.ndarray]:
-        """Per-sample summaries, concatenated."""
-        if not len(self):
-            return {k: np.zeros((0, 4) if k == "sample" else (0,)) for k in self._KEYS}
-        return {k: np.concatenate(self._parts[k]) for k in self._KEYS}
-
-    def gather(self) -> None:
-        """Merge the summaries of all DDP ranks (no-op without torch.distributed).
-
-        Samples seen by several ranks (a DistributedSampler pads the last batch with repeats) count once.
-        """
-        import torch.distributed as dist
-
-        if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
-            return
-        everyone: list = [None] * dist.get_world_size()
-        dist.all_gather_object(everyone, self.arrays())
-        merged = {k: np.concatenate([part[k] for part in everyone]) for k in self._KEYS}
-        _, first = np.unique(merged["sample"], axis=0, return_index=True)
-        self.reset()
-        for k in self._KEYS:
-            self._parts[k].append(merged[k][np.sort(first)])
+        self._append(values)
 
     @staticmethod
     def summarize(a: dict[str, np.ndarray]) -> dict[str, float]:

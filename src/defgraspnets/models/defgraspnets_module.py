@@ -13,9 +13,21 @@ Logged: ``train/loss``, ``val/loss``, and on validation/test the metrics of
 ``mae_deformation_mm``, ``mae_displacement_mm``, ``tau_s``, ``tau_d`` (grasp rankings by mean stress and
 mean deformation within (object, modulus, force step) groups).
 
+``val/loss`` and ``test/loss`` (and their stress / displacement parts) are the loss over the whole split:
+squared errors summed over all loss nodes of all samples, divided by the node counts, i.e. independent of
+the batch size and of the number of devices (not the mean of per-batch means).
+
 On ``fit``, if its normalizers are not fitted yet (fresh run), the module measures them on
 ``trainer.datamodule.statistics_dataloader()`` and records the datamodule's contact radius; both are stored in
 the checkpoint (buffers), so a checkpoint alone suffices for :mod:`defgraspnets.models.predictor`.
+
+Distributed data parallel (``trainer=ddp``): every rank sees a shard of the validation/test split (Lightning's
+DistributedSampler, which pads the last shard with repeated samples). The per-sample summaries of the
+metrics and of the loss are gathered from all ranks at the end of the epoch and de-duplicated by sample id,
+so ``val/*`` and ``test/*`` are those of the whole split, equal to a single-device evaluation (up to
+float32 rounding of the predictions). The normalization statistics are measured on every rank on the same
+seeded subset and then broadcast from rank 0 (bit-identical on every rank). Epoch-level training losses are
+averaged over ranks; step-level ones are rank 0's (no collective per step).
 """
 
 from __future__ import annotations
@@ -25,11 +37,59 @@ import math
 import torch
 from lightning import LightningModule
 
-from defgraspnets.eval.metrics import FieldMetrics
+from defgraspnets.eval.metrics import FieldMetrics, PerSampleSums
 from defgraspnets.models.graph import DEFAULT_CONTACT_RADIUS, GraspGraph
 from defgraspnets.models.meshgraphnet import DefGraspNet
 
-__all__ = ["DefGraspNetsModule"]
+__all__ = ["DefGraspNetsModule", "LossSums"]
+
+
+class LossSums(PerSampleSums):
+    """Per-sample sums of the squared standardized errors of an evaluation split, mergeable over DDP ranks.
+
+    Per sample: its id (shard, k, g, s), the squared stress errors summed over the stress-loss nodes, their
+    count, the squared displacement errors summed over the displacement-loss nodes and components, their
+    count. :meth:`compute` gives the loss of the whole split (sums over samples / counts).
+    """
+
+    _KEYS = ("sample", "stress_sq", "stress_n", "disp_sq", "disp_n")
+
+    @torch.no_grad()
+    def update(self, module: DefGraspNetsModule, batch: GraspGraph, pred: torch.Tensor) -> None:
+        """Add a batch: standardized predictions ``pred`` (n, 4) of ``module.net``."""
+        net = module.net
+        target = net.normalized_targets(batch)
+        mask_s, mask_d = net.loss_mask(batch)
+        graph = batch.node_graph()
+        b = batch.graph_count
+
+        def per_graph(mask: torch.Tensor, sq: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            idx = graph[mask]
+            total = torch.zeros(b, dtype=torch.float64, device=sq.device).index_add_(0, idx, sq.double())
+            count = torch.zeros(b, dtype=torch.float64, device=sq.device).index_add_(
+                0, idx, torch.ones_like(idx, dtype=torch.float64)
+            )
+            return total, count
+
+        s_sq, s_n = per_graph(mask_s, (pred[mask_s, 0] - target[mask_s, 0]).square())
+        d_err = (pred[mask_d, 1:] - target[mask_d, 1:]).square()
+        d_sq, d_n = per_graph(mask_d, d_err.sum(1))
+        self._append(
+            {
+                "sample": batch.sample.reshape(b, -1),
+                "stress_sq": s_sq,
+                "stress_n": s_n,
+                "disp_sq": d_sq,
+                "disp_n": d_n * d_err.shape[1],
+            }
+        )
+
+    def compute(self, stress_weight: float = 1.0, displacement_weight: float = 1.0) -> tuple[float, ...]:
+        """(total, stress, displacement) loss of everything accumulated."""
+        a = self.arrays()
+        stress = float(a["stress_sq"].sum() / a["stress_n"].sum())
+        disp = float(a["disp_sq"].sum() / a["disp_n"].sum())
+        return stress_weight * stress + displacement_weight * disp, stress, disp
 
 
 class DefGraspNetsModule(LightningModule):
@@ -85,6 +145,7 @@ class DefGraspNetsModule(LightningModule):
         )
         self.register_buffer("contact_radius", torch.tensor(float("nan"), dtype=torch.float64))
         self.metrics = {"val": FieldMetrics(), "test": FieldMetrics()}
+        self.loss_sums = {"val": LossSums(), "test": LossSums()}
         object.__setattr__(
             self, "_compiled", None
         )  # not a registered submodule: no duplicate state_dict keys
@@ -113,9 +174,21 @@ class DefGraspNetsModule(LightningModule):
                     "statistics_dataloader() or call net.fit_normalizers() first"
                 )
             dm.setup("fit")
-            self.net.fit_normalizers(dm.statistics_dataloader())
+            self.net.fit_normalizers(dm.statistics_dataloader(), progress=self.trainer.is_global_zero)
+            self._broadcast_normalizers()
         if self.hparams.compile and stage == "fit" and self._compiled is None:
             object.__setattr__(self, "_compiled", torch.compile(self.net))
+
+    def _broadcast_normalizers(self) -> None:
+        """DDP: make every rank use rank 0's normalization statistics (bit-identical buffers)."""
+        if self._trainer is None or self.trainer.world_size <= 1:
+            return
+        names = [n for n, _ in self.net.named_buffers() if "norm." in n]
+        state = {n: b.detach().cpu() for n, b in self.net.named_buffers() if n in names}
+        state = self.trainer.strategy.broadcast(state, src=0)
+        for n, b in self.net.named_buffers():
+            if n in state:
+                b.copy_(state[n].to(b))
 
     @property
     def network(self) -> DefGraspNet | torch.nn.Module:
@@ -142,20 +215,17 @@ class DefGraspNetsModule(LightningModule):
     def training_step(self, batch: GraspGraph, batch_idx: int) -> torch.Tensor:
         total, stress, disp = self.loss(batch)
         b = batch.graph_count
-        self.log("train/loss", total, on_step=True, on_epoch=True, prog_bar=True, batch_size=b)
-        self.log_dict(
-            {"train/loss_stress": stress, "train/loss_displacement": disp}, on_epoch=True, batch_size=b
-        )
+        values = {"train/loss": total, "train/loss_stress": stress, "train/loss_displacement": disp}
+        # step values: this rank's (no collective per step); epoch values: averaged over ranks
+        for name, value in values.items():
+            bar = name == "train/loss"
+            self.log(f"{name}_step", value, on_step=True, on_epoch=False, prog_bar=bar, batch_size=b)
+            self.log(f"{name}_epoch", value, on_step=False, on_epoch=True, batch_size=b, sync_dist=True)
         return total
 
     def _eval_step(self, batch: GraspGraph, stage: str) -> None:
         pred = self.net(batch)
-        total, stress, disp = self.loss(batch, pred)
-        b = batch.graph_count
-        self.log(f"{stage}/loss", total, prog_bar=True, batch_size=b, sync_dist=True)
-        self.log_dict(
-            {f"{stage}/loss_stress": stress, f"{stage}/loss_displacement": disp}, batch_size=b, sync_dist=True
-        )
+        self.loss_sums[stage].update(self, batch, pred)
         # fields in Pa and m: one-step reuses the pass above, multi-step rolls out from the rest state
         s, d = (
             self.net.to_physical(pred, batch) if self.net.prediction == "one_step" else self.net.fields(batch)
@@ -163,14 +233,25 @@ class DefGraspNetsModule(LightningModule):
         self.metrics[stage].update(s, d, batch)
 
     def _eval_epoch_end(self, stage: str) -> None:
-        m = self.metrics[stage]
+        m, sums = self.metrics[stage], self.loss_sums[stage]
         m.gather()
+        sums.gather()
+        values = {}
+        if len(sums):
+            total, stress, disp = sums.compute(self.hparams.stress_weight, self.hparams.displacement_weight)
+            values.update({"loss": total, "loss_stress": stress, "loss_displacement": disp})
         if len(m):
-            values = m.compute()
-            values.pop("samples", None)
+            metrics = m.compute()
+            metrics.pop("samples", None)
+            values.update(metrics)
+        if values:
             # identical on every rank after gather(); sync_dist only averages equal values
+            loss = values.pop("loss", None)
+            if loss is not None:
+                self.log(f"{stage}/loss", float(loss), prog_bar=True, sync_dist=True)
             self.log_dict({f"{stage}/{k}": float(v) for k, v in values.items()}, sync_dist=True)
         m.reset()
+        sums.reset()
 
     def validation_step(self, batch: GraspGraph, batch_idx: int) -> None:
         self._eval_step(batch, "val")
