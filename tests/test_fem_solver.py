@@ -367,3 +367,77 @@ def test_newton_budget_flags_a_problem_instead_of_holding_up_the_batch():
         fem.SolverOptions(max_newton_per_solve=-1)
     with pytest.raises(ValueError, match="friction_rtol"):
         fem.SolverOptions(friction_rtol=1.0)
+
+
+def _assert_equilibria_identical(a, b):
+    """Every field of two Equilibrium objects equal bit for bit (NaN where NaN)."""
+    import dataclasses
+
+    for f in dataclasses.fields(a):
+        if f.name in ("mesh", "extras"):
+            continue
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(x, dict):
+            assert x.keys() == y.keys(), f.name
+            for k in x:
+                assert np.array_equal(x[k], y[k], equal_nan=True), f"{f.name}[{k}]"
+        elif x is None:
+            assert y is None, f.name
+        else:
+            assert np.array_equal(x, y, equal_nan=True), f.name
+
+
+@pytest.mark.parametrize("linear_solver", ["direct", "dense"])
+def test_copied_state_solves_as_its_source_problem(linear_solver):
+    """copy_state_from: replicas of solved problems continue bit for bit as a solver that solved every
+    replica itself (friction history, predictor, chord-Newton factorizations included)."""
+    forces = np.array([0.5, 1.0, 2.0])
+    rows = np.array([1, 0, 1, 1])  # replicas of the source's problems (source problem 1 = problem 2)
+    select = np.array([0, 2])[rows]
+    _, source = _grasp_problem(3, linear_solver=linear_solver, select=[0, 2])
+    _, reference = _grasp_problem(3, linear_solver=linear_solver, select=select)
+    _, copy = _grasp_problem(3, linear_solver=linear_solver, select=[0, 0, 0, 0])  # materials copied too
+    _ramp(source, forces[[0, 2]], steps=2)
+    squeezed = _ramp(reference, forces[select], steps=2)
+    copy.copy_state_from(source, rows)
+    assert reference.system._direct_factors or reference.system._dense_factors
+    gravity = np.array([[0, 0, -9.81], [0, 0, 9.81], [9.81, 0, 0], [0, 9.81, 30.0]])
+    for scale in (0.5, 1.0):
+        load = fem.BodyLoad(gravity=scale * gravity)
+        eq_ref = reference.solve(targets={"grip": 1.2 * forces[select]}, body_load=load)
+        eq_copy = copy.solve(targets={"grip": 1.2 * forces[select]}, body_load=load)
+        assert np.all(eq_ref.newton_iterations > 0)
+        _assert_equilibria_identical(eq_ref, eq_copy)
+    np.testing.assert_array_equal(copy.status, reference.status)
+    assert not np.array_equal(eq_ref.displacement, squeezed.displacement)
+
+
+def test_copy_state_rejects_mismatched_solvers():
+    _, source = _grasp_problem(3, select=[0, 2])
+    _, copy = _grasp_problem(3, select=[0, 1, 2])
+    with pytest.raises(ValueError, match="one problem of other per problem"):
+        copy.copy_state_from(source, [0, 1])
+    with pytest.raises(ValueError, match=r"\[0, 2\)"):
+        copy.copy_state_from(source, [0, 1, 2])
+    with pytest.raises(ValueError, match="integer"):
+        copy.copy_state_from(source, [0.0, 1.0, 1.0])
+    with pytest.raises(TypeError, match="QuasiStaticSolver"):
+        copy.copy_state_from(object(), [0, 1, 1])
+    other_mesh = fem.TetMesh.box(size=(L, L, L), divisions=(3, 3, 3))
+    with pytest.raises(ValueError, match="mesh sizes"):
+        fem.QuasiStaticSolver(other_mesh, source.bodies, batch_size=3, device="cpu").copy_state_from(
+            source, [0, 1, 1]
+        )
+    with pytest.raises(ValueError, match="bodies"):
+        fem.QuasiStaticSolver(source.mesh, source.bodies[:1], batch_size=3, device="cpu").copy_state_from(
+            source, [0, 1, 1]
+        )
+    with pytest.raises(ValueError, match="options"):
+        fem.QuasiStaticSolver(
+            source.mesh, source.bodies, batch_size=3, device="cpu", options=fem.SolverOptions(rtol=1e-3)
+        ).copy_state_from(source, [0, 1, 1])
+    with pytest.raises(ValueError, match="fixed"):
+        fem.QuasiStaticSolver(
+            source.mesh, source.bodies, batch_size=3, device="cpu", fixed=[0], options=source.options
+        ).copy_state_from(source, [0, 1, 1])
+    copy.copy_state_from(source, [0, 1, 1])  # a valid copy after the refused ones

@@ -356,6 +356,83 @@ def test_off_axis_grasp_pivots_at_pickup_force_but_holds_at_slip_force(box):
     assert r.held.all() and np.all(r.failure == GraspFailure.HELD)
 
 
+def _squeeze_every_replica(self, replicas, desc):
+    """GraspExperiments._squeezed as it was before the squeeze was shared: every replica squeezed itself."""
+    from defgraspnets.grasp.squeeze import make_squeeze_solver, squeeze_ramp
+
+    rows = np.repeat(np.arange(self.num_grasps), replicas)
+    solver = make_squeeze_solver(
+        self.mesh,
+        self.grasps[rows],
+        self.material,
+        friction=self.settings.friction,
+        gripper=self.gripper,
+        device=self.device,
+        options=self.options,
+    )
+    eqs = squeeze_ramp(solver, self.pickup_force, self.settings.squeeze_steps)
+    return solver, eqs[-1], self.finger_frames[rows][:, :, :3, 1], rows
+
+
+@pytest.fixture(scope="module")
+def two_grasps(box):
+    from defgraspnets.grasp.sampler import sample_antipodal_grasps
+
+    return sample_antipodal_grasps(box, 2, rotations_per_axis=1, seed=3)
+
+
+def test_shared_squeeze_gives_the_results_of_squeezing_every_replica(box, two_grasps, monkeypatch):
+    """The G grasps are squeezed once and copied to their replicas (one per direction): the linear ramp's
+    thresholds, failures, statuses and Newton iterations equal bit for bit those of solvers that squeezed
+    every replica, and the squeeze runs once per GraspExperiments."""
+    from defgraspnets.grasp import experiments as exp_module
+
+    settings = ExperimentSettings(acceleration_steps=4, squeeze_steps=3)
+    dirs = [[1.0, 0, 0], [0, 1.0, 0], [0, 0, -1.0]]
+    shared = GraspExperiments(box, two_grasps, MATERIAL, settings, device="cpu", directions_per_solver=2)
+    ramps = []
+    real_ramp = exp_module.squeeze_ramp
+    monkeypatch.setattr(
+        exp_module, "squeeze_ramp", lambda s, *a, **k: ramps.append(s.batch_size) or real_ramp(s, *a, **k)
+    )
+    new = shared.acceleration("linear", dirs)
+    assert ramps == [2]  # one squeeze of the 2 grasps for the two solvers (2 + 1 directions)
+    again = shared.acceleration("linear", dirs[:1])
+    assert ramps == [2]
+    monkeypatch.setattr(GraspExperiments, "_squeezed", _squeeze_every_replica)
+    old_ex = GraspExperiments(box, two_grasps, MATERIAL, settings, device="cpu", directions_per_solver=2)
+    old = old_ex.acceleration("linear", dirs)
+    for name in ("threshold", "failure", "solver_status", "newton_iterations"):
+        assert np.array_equal(getattr(new, name), getattr(old, name), equal_nan=True), name
+        assert np.array_equal(getattr(again, name), getattr(old, name)[:, :1], equal_nan=True), name
+    assert np.all(new.newton_iterations > 0)
+
+
+def test_shared_squeeze_gives_the_same_reorientation_and_pickup(box, two_grasps, monkeypatch):
+    settings = ExperimentSettings(num_directions=2, reorientation_angles=2, squeeze_steps=3, pickup_steps=2)
+    shared = GraspExperiments(box, two_grasps, MATERIAL, settings, device="cpu")
+    p_new = shared.pickup()
+    r_new = shared.reorientation(p_new.slip_force)
+    monkeypatch.setattr(GraspExperiments, "_squeezed", _squeeze_every_replica)
+    old_ex = GraspExperiments(box, two_grasps, MATERIAL, settings, device="cpu")
+    p_old = old_ex.pickup()
+    r_old = old_ex.reorientation(p_old.slip_force)
+    for name in ("success", "failure", "slide", "slip_force", "max_deformation", "strain_energy"):
+        assert np.array_equal(getattr(p_new, name), getattr(p_old, name), equal_nan=True), name
+    assert np.array_equal(p_new.squeezed.displacement, p_old.squeezed.displacement)
+    for name in (
+        "held",
+        "failure",
+        "positions",
+        "von_mises",
+        "deformation",
+        "max_von_mises",
+        "controllability",
+    ):
+        assert np.array_equal(getattr(r_new, name), getattr(r_old, name), equal_nan=True), name
+    assert np.isfinite(r_new.positions).any()
+
+
 # ---------------------------------------------------------------------------------------------- script
 def test_grasp_experiments_script(tmp_path):
     out = tmp_path / "out"

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from enum import IntEnum
 
 import numpy as np
@@ -62,6 +62,31 @@ class Equilibrium:
     @property
     def batch_size(self) -> int:
         return len(self.status)
+
+    def take(self, rows) -> Equilibrium:
+        """The equilibria of problems ``rows`` (integer indices, repeats allowed): every per-problem array
+        (and every array of the per-body / per-dof dicts) indexed by ``rows`` along its first axis, as copies;
+        ``mesh`` shared and ``extras`` copied shallowly."""
+        rows = np.asarray(rows)
+        if rows.ndim != 1 or not np.issubdtype(rows.dtype, np.integer):
+            raise ValueError(f"rows must be a 1-D integer array, got dtype {rows.dtype} shape {rows.shape}")
+        B = self.batch_size
+        if rows.size and (rows.min() < -B or rows.max() >= B):
+            raise IndexError(f"rows must index the {B} problems, got {rows.min()}..{rows.max()}")
+        out = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name == "mesh":
+                out[f.name] = v
+            elif f.name == "extras":
+                out[f.name] = dict(v)
+            elif v is None:
+                out[f.name] = None
+            elif isinstance(v, dict):
+                out[f.name] = {k: np.asarray(a)[rows] for k, a in v.items()}
+            else:
+                out[f.name] = np.asarray(v)[rows]
+        return Equilibrium(**out)
 
     @property
     def converged(self) -> np.ndarray:

@@ -671,6 +671,173 @@ class QuasiStaticSolver:
         self._unpack(self._q_ref, self._positions_ref, self._travel_ref)
         self._commit_body_reference(np.ones(self.batch_size, dtype=bool))
 
+    def copy_state_from(self, other: QuasiStaticSolver, rows) -> None:
+        """Problem b of this solver takes the complete state of problem ``rows[b]`` of ``other``.
+
+        ``other`` must be built on the same mesh (points and tets), the same rigid bodies (names, shapes,
+        controls, dofs), Dirichlet constraints, pressure surface, options and device; ``rows`` is a
+        (batch_size,) integer array into ``other``'s problems (repeats allowed: one solved problem copied to
+        several replicas). Copied: displacements and travels (current, converged reference, trial and
+        predictor), friction lags, stick stretches and their Aitken relaxation, body poses and frictions
+        with their friction reference placements, materials, body loads, dof targets, prescribed
+        displacements, nodal and dof forces, gas laws and pressures, statuses, Levenberg-Marquardt and
+        chord-Newton bookkeeping, and the stored factorizations (shared: they are never modified after
+        being made, only dropped or replaced). The solver is batch-independent, so the next solve of a
+        copied problem is bit-identical to the one its source problem would make.
+        """
+        if not isinstance(other, QuasiStaticSolver):
+            raise TypeError(f"other must be a QuasiStaticSolver, got {type(other).__name__}")
+        rows = np.asarray(rows)
+        if rows.ndim != 1 or not (rows.size == 0 or np.issubdtype(rows.dtype, np.integer)):
+            raise ValueError(f"rows must be a 1-D integer array, got dtype {rows.dtype} shape {rows.shape}")
+        rows = rows.astype(np.int64)
+        B, Bo = self.batch_size, other.batch_size
+        if len(rows) != B:
+            raise ValueError(
+                f"rows must name one problem of other per problem of this solver: {B}, got {len(rows)}"
+            )
+        if rows.min() < 0 or rows.max() >= Bo:
+            raise ValueError(f"rows must lie in [0, {Bo}) (other's batch), got {rows.min()}..{rows.max()}")
+        self._check_compatible(other)
+        N, D, K, S, R = (
+            self.mesh.num_vertices,
+            self.num_dofs,
+            self.num_bodies,
+            self.num_surface,
+            self.rows_per_problem,
+        )
+        dev = self.device
+
+        def gather(dst, src, per: int):
+            """dst (this batch's array) <- src (other's) problem rows, ``per`` entries per problem."""
+            if per == 0:
+                return
+            s = src.numpy()
+            d = dst.numpy().copy()
+            d[: B * per] = s[: Bo * per].reshape(Bo, per, *s.shape[1:])[rows].reshape(B * per, *s.shape[1:])
+            dst.assign(wp.array(d, dtype=dst.dtype, device=dev))
+
+        # materials first (set_material rebuilds the per-problem material arrays and drops factorizations)
+        self.set_material([other.materials[r] for r in rows])
+        per_row = [
+            "_q",
+            "_q_ref",
+            "_q_trial",
+            "_last_increment",
+            "_volume_gradient",
+            "_diag_shift",
+        ]
+        for name in per_row:
+            gather(getattr(self, name), getattr(other, name), R)
+        for name in ("_positions", "_positions_ref", "_positions_trial", "_nodal_force", "_stabilization"):
+            gather(getattr(self, name), getattr(other, name), N)
+        for name in ("_travel", "_travel_ref", "_travel_trial", "_dof_force"):
+            gather(getattr(self, name), getattr(other, name), D)
+        contacts = (
+            "_lag_force",
+            "_lag_normal",
+            "_relag_residual",
+            "_stick_stretch",
+            "_c_force",
+            "_c_normal",
+            "_c_gap",
+            "_c_friction",
+            "_c_stick",
+        )
+        for name in contacts:
+            gather(getattr(self, name), getattr(other, name), S * K)
+        per_problem = (
+            "_relag_relaxation",
+            "_exact_hessian",
+            "_energy",
+            "_step",
+            "_stabilization_force",
+            "_gas_pressure",
+            "_volume_sum",
+        )
+        for name in per_problem:
+            gather(getattr(self, name), getattr(other, name), 1)
+        for a, b in zip(self._scratch, other._scratch):
+            gather(a, b, 1)
+        for name in ("rotation", "translation", "axis", "friction", "ref_rotation", "ref_translation"):
+            gather(getattr(self._bodies, name), getattr(other._bodies, name), K)
+        # host state
+        self._poses = other._poses[rows].copy()
+        self._friction = other._friction[rows].copy()
+        self._relag_omega = other._relag_omega[rows].copy()
+        self._relag_has_residual = other._relag_has_residual[rows].copy()
+        self._last_change = other._last_change[rows].copy()
+        self._factor_steps = other._factor_steps[rows].copy()
+        self._factor_damping = other._factor_damping[rows].copy()
+        self._gas_law = other._gas_law[rows].copy()
+        self._gas_k = np.asarray(other._gas_k)[rows].copy()
+        self._gas_target = other._gas_target[rows].copy()
+        self._dof_target = other._dof_target[rows].copy()
+        self._prescribed = other._prescribed[rows].copy()
+        self.status = other.status[rows].copy()
+        self._stabilization_at_convergence = other._stabilization_at_convergence[rows].copy()
+        self._load = BodyLoad(**{k: v[rows] for k, v in other._load.arrays(Bo).items()})
+        # linear-solver state: factorizations (shared, read-only once made), multigrid hierarchies
+        sysm, src = self.system, other.system
+        sysm.forget_factors()
+        sysm._amg.clear()
+        for b, r in enumerate(rows.tolist()):
+            if r in src._direct_factors:
+                sysm._direct_factors[b] = src._direct_factors[r]
+            if r in src._dense_factors:
+                sysm._dense_factors[b] = src._dense_factors[r]
+            if r in src._amg:
+                sysm._amg[b] = list(src._amg[r])
+        sysm.fresh_factor = src.fresh_factor[rows].copy()
+        sysm.factorizations = src.factorizations[rows].copy()
+        for name in ("gradient", "rhs", "increment"):
+            gather(getattr(sysm, name), getattr(src, name), R)
+        gather(sysm.values, src.values, self.pattern.nnz)
+
+    def _check_compatible(self, other: QuasiStaticSolver) -> None:
+        """Raise ValueError unless ``other`` has this solver's mesh, bodies, constraints, options, device."""
+
+        def fail(what: str, mine, theirs):
+            raise ValueError(
+                f"cannot copy solver state: different {what} (this solver {mine}, other {theirs})"
+            )
+
+        m, o = self.mesh, other.mesh
+        if (m.num_vertices, m.num_tets) != (o.num_vertices, o.num_tets):
+            fail("mesh sizes (vertices, tets)", (m.num_vertices, m.num_tets), (o.num_vertices, o.num_tets))
+        if m is not o and not (np.array_equal(m.points, o.points) and np.array_equal(m.tets, o.tets)):
+            fail("mesh", "points/tets", "other points/tets")
+        mine = [(b.name, type(b.shape).__name__, b.dof_name, b.control.mode) for b in self.bodies]
+        theirs = [(b.name, type(b.shape).__name__, b.dof_name, b.control.mode) for b in other.bodies]
+        if mine != theirs:
+            fail("bodies (name, shape, dof, control)", mine, theirs)
+        geometry = ("kind", "radius", "half_length", "half_extents", "mesh_points")
+        if not (
+            np.array_equal(self._shape_frames, other._shape_frames)
+            and np.array_equal(self._axes_local, other._axes_local)
+            and all(
+                np.array_equal(getattr(self._bodies, g).numpy(), getattr(other._bodies, g).numpy())
+                for g in geometry
+            )
+        ):
+            fail("body geometry", [b.name for b in self.bodies], [b.name for b in other.bodies])
+        if not np.array_equal(self.fixed_mask, other.fixed_mask):
+            fail("fixed (Dirichlet) masks", int(self.fixed_mask.sum()), int(other.fixed_mask.sum()))
+        if self.options != other.options or self.linear_solver != other.linear_solver:
+            fail("options", self.options, other.options)
+        if self.device != other.device:
+            fail("devices", self.device, other.device)
+        ps, po = self.pressure_surface, other.pressure_surface
+        if (ps is None) != (po is None) or (
+            ps is not None
+            and not (
+                np.array_equal(ps.faces, po.faces)
+                and np.array_equal(ps.reference_point, po.reference_point)
+                and ps.external_volume == po.external_volume
+            )
+        ):
+            fail("pressure surfaces", ps, po)
+
     # ------------------------------------------------------------------ kernels plumbing
     def _unpack(self, q, positions, travel):
         wp.launch(

@@ -495,6 +495,7 @@ class GraspExperiments:
         s = self.settings
         self.pickup_force = pickup_grasp_force(self.mass, s.friction, s.safety_factor, s.gravity)
         self.finger_frames = finger_contact_poses(grasps, gripper)  # (G, 2, 4, 4)
+        self._squeeze_cache = None  # (key, solver, equilibrium) of the G grasps squeezed to F_p
 
     # ------------------------------------------------------------------ plumbing
     def _bar(self, iterable, desc: str):
@@ -504,9 +505,37 @@ class GraspExperiments:
 
         return tqdm(iterable, desc=desc, leave=False)
 
+    def _squeeze(self) -> tuple[fem.QuasiStaticSolver, fem.Equilibrium]:
+        """The G grasps squeezed to F_p once, in a solver of one problem per grasp, and their equilibrium at
+        F_p; cached (per squeeze force, steps and friction) and never solved further: every experiment
+        copies its state (:meth:`fem.QuasiStaticSolver.copy_state_from`) into a solver of its own."""
+        s = self.settings
+        key = (self.pickup_force, s.squeeze_steps, s.friction)
+        cached = self._squeeze_cache
+        if cached is None or cached[0] != key:
+            solver = make_squeeze_solver(
+                self.mesh,
+                self.grasps,
+                self.material,
+                friction=s.friction,
+                gripper=self.gripper,
+                device=self.device,
+                options=self.options,
+            )
+            eqs = squeeze_ramp(solver, self.pickup_force, s.squeeze_steps, progress=self.progress)
+            cached = self._squeeze_cache = (key, solver, eqs[-1])
+        return cached[1], cached[2]
+
     def _squeezed(self, replicas: int, desc: str):
-        """A solver with every grasp repeated ``replicas`` times (grasp-major), squeezed to F_p."""
+        """A solver with every grasp repeated ``replicas`` times (grasp-major), squeezed to F_p: the G grasps
+        are squeezed once (:meth:`_squeeze`) and each problem takes the state of its grasp. With the exact
+        linear solvers ("direct", "dense") a problem does not depend on its batch, so this is bit-identical
+        to squeezing every replica (tests/test_grasp_experiments.py); with "cg" / "amg" (Krylov tolerances
+        and iteration counts shared by the batch) it is the squeeze of a batch of G instead of G x replicas,
+        equal to within the Newton tolerance. Returns the solver, the equilibrium at F_p of its problems,
+        the closing directions and the grasp of each problem."""
         rows = np.repeat(np.arange(self.num_grasps), replicas)
+        squeezed, eq = self._squeeze()
         solver = make_squeeze_solver(
             self.mesh,
             self.grasps[rows],
@@ -516,9 +545,9 @@ class GraspExperiments:
             device=self.device,
             options=self.options,
         )
-        eqs = squeeze_ramp(solver, self.pickup_force, self.settings.squeeze_steps, progress=self.progress)
+        solver.copy_state_from(squeezed, rows)
         frames = self.finger_frames[rows]
-        return solver, eqs[-1], frames[:, :, :3, 1], rows
+        return solver, eq.take(rows), frames[:, :, :3, 1], rows
 
     def _hold(self, eq, reference, closing, force) -> HoldState:
         s = self.settings
