@@ -779,17 +779,7 @@ class QuasiStaticSolver:
         self._load = BodyLoad(**{k: v[rows] for k, v in other._load.arrays(Bo).items()})
         # linear-solver state: factorizations (shared, read-only once made), multigrid hierarchies
         sysm, src = self.system, other.system
-        sysm.forget_factors()
-        sysm._amg.clear()
-        for b, r in enumerate(rows.tolist()):
-            if r in src._direct_factors:
-                sysm._direct_factors[b] = src._direct_factors[r]
-            if r in src._dense_factors:
-                sysm._dense_factors[b] = src._dense_factors[r]
-            if r in src._amg:
-                sysm._amg[b] = list(src._amg[r])
-        sysm.fresh_factor = src.fresh_factor[rows].copy()
-        sysm.factorizations = src.factorizations[rows].copy()
+        sysm.share_factors_from(src, rows)
         for name in ("gradient", "rhs", "increment"):
             gather(getattr(sysm, name), getattr(src, name), R)
         gather(sysm.values, src.values, self.pattern.nnz)

@@ -188,6 +188,22 @@ class BatchedSystem:
             self._direct_factors.pop(int(p), None)
             self._dense_factors.pop(int(p), None)
 
+    def share_factors_from(self, other: BatchedSystem, rows: np.ndarray) -> None:
+        """Problem b takes problem ``rows[b]`` of ``other``'s stored factorizations and multigrid hierarchy
+        (shared, not copied: they are never modified after being made, only replaced or dropped), and its
+        factorization counters."""
+        self.forget_factors()
+        self._amg.clear()
+        for b, r in enumerate(np.asarray(rows).tolist()):
+            if r in other._direct_factors:
+                self._direct_factors[b] = other._direct_factors[r]
+            if r in other._dense_factors:
+                self._dense_factors[b] = other._dense_factors[r]
+            if r in other._amg:
+                self._amg[b] = list(other._amg[r])
+        self.fresh_factor = other.fresh_factor[rows].copy()
+        self.factorizations = other.factorizations[rows].copy()
+
     def _to_factor(self, todo, stored: dict, refactor: np.ndarray | None) -> list[int]:
         """The problems of ``todo`` that need a new factorization: those asked to (``refactor``) and those
         without a stored one. Records ``fresh_factor`` and counts them in ``factorizations``."""
