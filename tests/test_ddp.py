@@ -21,17 +21,10 @@ import pytest
 import torch
 from lightning import Callback, LightningModule, Trainer
 from lightning.pytorch.loggers import CSVLogger
+from test_train import TINY
 
 ROOT = Path(__file__).resolve().parents[1]
 TESTS = Path(__file__).resolve().parent
-TINY = [
-    "model.latent=8",
-    "model.num_blocks=1",
-    "data.statistics_samples=8",
-    "data.batch_size=8",
-    "data.eval_steps=[-1]",
-    "extras.print_config=false",
-]
 
 
 class SaveRankState(Callback):
