@@ -206,7 +206,9 @@ def _tail_parameters(rest, latent: int) -> tuple[Tensor, Tensor, Tensor, Tensor,
     return weights, biases, norm.weight.contiguous(), norm.bias.contiguous(), float(norm.eps)
 
 
-def _check(latents: tuple[Tensor, ...], weight: Tensor) -> None:
+def _check(latents: tuple[Tensor, ...], weight: Tensor, latent: int) -> None:
+    """Clear errors unless the kernels run for ``weight``'s device and dtype, the latent size ``latent`` is a
+    power of two >= 16 and the ``latents`` (·, latent) share the weights' dtype."""
     if triton is None:
         raise RuntimeError("fused message passing needs Triton (pip install triton)")
     if not fused_message_passing_available(weight.device, weight.dtype):
@@ -214,7 +216,6 @@ def _check(latents: tuple[Tensor, ...], weight: Tensor) -> None:
             "fused message passing runs on CUDA with bfloat16 or float16 weights (or with "
             f"TRITON_INTERPRET=1), got {weight.dtype} on {weight.device}"
         )
-    latent = weight.shape[0]
     if latent & (latent - 1) or latent < 16:
         raise ValueError(f"fused message passing needs a power-of-two latent size >= 16, got {latent}")
     for x in latents:
@@ -232,7 +233,7 @@ def fused_edge_update(
     over edges by target node (n, l), in one kernel (module docstring); ``mask`` (E,) bool zeroes the
     messages of padding edges. Forward only (no autograd)."""
     w_first = mlp.lin_edge.weight
-    _check((edge, node), w_first)
+    _check((edge, node), w_first, w_first.shape[0])
     w_rest, b_rest, gamma, beta, eps = _tail_parameters(mlp.rest, w_first.shape[0])
     E, latent = edge.shape
     # the node terms of the split first layer, one GEMM for both: [W_r; W_s] h
@@ -276,8 +277,8 @@ def fused_node_update(mlp, node: Tensor, mesh_sum: Tensor, contact_sum: Tensor) 
     meshgraphnet.MLP` ``f`` (first layer 3l -> l) in one kernel, without forming the concatenation;
     the float32 message sums enter ``f`` in the latent dtype, as in the unfused block. Forward only."""
     first = mlp[0]
-    _check((node,), first.weight[:, : node.shape[1]])
     latent = node.shape[1]
+    _check((node,), first.weight, latent)
     if tuple(first.weight.shape) != (latent, 3 * latent):
         raise ValueError(f"the node MLP's first layer must map 3 x {latent} -> {latent} features")
     w_rest, b_rest, gamma, beta, eps = _tail_parameters(list(mlp)[1:], latent)

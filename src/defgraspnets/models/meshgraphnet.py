@@ -389,7 +389,7 @@ class DefGraspNet(nn.Module):
         dtype = node.dtype
         # features and normalization in the dtype of the positions (fp32/fp64); the encode-process-decode
         # networks may run in a lower precision (e.g. bf16 for inference, see ``DefGraspNetsPredictor``)
-        net_dtype = self.networks[0].node_encoder[0].weight.dtype
+        net_dtype = self.network_dtype
         node, mesh, contact = (
             self.node_norm(node).to(net_dtype),
             self.mesh_edge_norm(mesh).to(net_dtype),
@@ -400,6 +400,11 @@ class DefGraspNet(nn.Module):
             net(node, mesh, contact, g.mesh_edge_index, g.contact_edge_index, mask) for net in self.networks
         ]
         return (outs[0] if len(outs) == 1 else torch.cat(outs, dim=1)).to(dtype)
+
+    @property
+    def network_dtype(self) -> torch.dtype:
+        """dtype of the encode-process-decode networks (may be lower than the features', e.g. bf16)."""
+        return self.networks[0].node_encoder[0].weight.dtype
 
     @property
     def shares_object_encoding(self) -> bool:
@@ -418,7 +423,7 @@ class DefGraspNet(nn.Module):
         n, per_graph_edges = g.num_nodes // G, g.mesh_edge_index.shape[1] // G
         pos, node_type, closing = g.pos, g.node_type, g.closing_dir
         dtype = pos.dtype
-        net_dtype = self.networks[0].node_encoder[0].weight.dtype
+        net_dtype = self.network_dtype
         # the object part, from graph 0
         obj_node = self.node_norm(fz.node_features(node_type[:N], pos[:N], closing[:N]))
         obj_edges = g.mesh_edge_index[:, :E_o]

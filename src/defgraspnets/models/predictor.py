@@ -183,9 +183,7 @@ class DefGraspNetsPredictor:
             self.net.double()
         elif precision == "bf16":
             self.net.networks.to(torch.bfloat16)
-        available = fused_message_passing_available(
-            self.device, self.net.networks[0].node_encoder[0].weight.dtype
-        )
+        available = fused_message_passing_available(self.device, self.net.network_dtype)
         auto = available and self.device.type == "cuda"  # never Triton's (slow) CPU interpreter by default
         if fused_message_passing and not available:
             raise ValueError(
