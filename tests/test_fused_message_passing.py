@@ -80,8 +80,9 @@ def test_fused_edge_update_gives_the_updated_latents_and_the_sums_per_target():
 
 
 @needs_kernels
-def test_the_fused_path_serves_passes_without_gradients_only():
-    """With autograd on, the network keeps the differentiable op-by-op blocks (and never calls a kernel)."""
+def test_trainable_weights_keep_the_op_by_op_blocks_in_passes_with_gradients():
+    """Training (weights that require gradients) never calls a kernel; the fused forward still serves its
+    passes without gradients; calling a fused update directly with trainable weights is a clear error."""
     mesh_index, contact_index, mask, g = _graph()
     net = _perturbed(EncodeProcessDecode(7, 5, 6, 4, latent=16, num_blocks=2))
     net.fused_message_passing = True
@@ -100,13 +101,63 @@ def test_the_fused_path_serves_passes_without_gradients_only():
         out = net(node, mesh, contact, mesh_index, contact_index, mask)
         assert out.requires_grad and not calls
         out.sum().backward()
-        assert node.grad is not None and torch.isfinite(node.grad).all()
+        assert net.blocks[0].node[0].weight.grad is not None  # weight gradients, for training
         with torch.no_grad():
             fused = net(node, mesh, contact, mesh_index, contact_index, mask)
         assert len(calls) == 2 * 2  # mesh and contact edges of each of the 2 blocks
     finally:
         fe._edge_update_kernel = original
     torch.testing.assert_close(fused, out.detach(), rtol=1e-5, atol=1e-5 * float(out.detach().abs().max()))
+    with pytest.raises(RuntimeError, match="freeze the weights"):
+        fe.fused_edge_update(
+            net.blocks[0].mesh_edge, torch.randn(5, 16), torch.randn(4, 16), mesh_index[:, :5] % 4
+        )
+
+
+def _input_gradients(net, node, mesh, contact, mesh_index, contact_index, mask, weights):
+    inputs = [x.detach().clone().requires_grad_(True) for x in (node, mesh, contact)]
+    out = net(*inputs, mesh_index, contact_index, mask)
+    (out * weights).sum().backward()
+    return out.detach(), [x.grad for x in inputs]
+
+
+@needs_kernels
+@pytest.mark.parametrize("hidden_layers", [1, 2, 3])
+def test_fused_gradients_equal_the_op_by_op_gradients(hidden_layers):
+    """Frozen weights (planning): the backward kernels give the op-by-op network's input gradients (node,
+    mesh-edge and contact-edge features, through the encoders, 3 blocks with masked padding edges, the
+    decoder), float32, to rounding (the op-by-op network's gradients are checked against finite differences
+    in the planning tests)."""
+    mesh_index, contact_index, mask, g = _graph()
+    net = _perturbed(EncodeProcessDecode(7, 5, 6, 4, latent=16, num_blocks=3, hidden_layers=hidden_layers))
+    net.requires_grad_(False)
+    node, mesh, contact = (
+        torch.randn(40, 7, generator=g),
+        torch.randn(200, 5, generator=g),
+        torch.randn(30, 6),
+    )
+    weights = torch.randn(40, 4, generator=g)
+    ref_out, ref = _input_gradients(net, node, mesh, contact, mesh_index, contact_index, mask, weights)
+    net.fused_message_passing = True
+    calls = []
+    original = fe._edge_update_backward_kernel
+
+    class Spy:
+        def __getitem__(self, grid):
+            calls.append(grid)
+            return original[grid]
+
+    try:
+        fe._edge_update_backward_kernel = Spy()
+        out, fused = _input_gradients(net, node, mesh, contact, mesh_index, contact_index, mask, weights)
+    finally:
+        fe._edge_update_backward_kernel = original
+    assert len(calls) == 2 * 3  # the backward ran in the kernels
+    torch.testing.assert_close(out, ref_out, rtol=1e-5, atol=1e-5 * float(ref_out.abs().max()))
+    for a, b in zip(fused, ref):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5 * float(b.abs().max()))
+    # padding contact edges get no gradient through their (zeroed) messages, only the residual's
+    assert torch.all(fused[2][~mask].abs().sum(1) == 0)  # encoder input of a padded edge: no influence
 
 
 def test_availability_and_clear_errors(monkeypatch):
@@ -150,3 +201,24 @@ def test_bf16_fused_network_is_as_accurate_as_the_bf16_op_by_op_network():
     err_plain = float((plain - ref).abs().mean())
     err_fused = float((fused - ref).abs().mean())
     assert err_fused < 1.5 * err_plain + 1e-4 * float(ref.abs().mean())
+
+
+@pytest.mark.gpu
+def test_bf16_fused_gradients_are_as_accurate_as_the_bf16_op_by_op_gradients():
+    """On CUDA, frozen weights: input gradients of the fused bfloat16 network against a float32 reference err
+    no more than those of the op-by-op bfloat16 network."""
+    mesh_index, contact_index, mask, g = _graph(n=3000, mesh_edges=30000, contact_edges=2000)
+    net = _perturbed(EncodeProcessDecode(7, 5, 6, 4, latent=128, num_blocks=15)).cuda().requires_grad_(False)
+    inputs = [torch.randn(3000, 7, generator=g), torch.randn(30000, 5, generator=g), torch.randn(2000, 6)]
+    weights = torch.randn(3000, 4, generator=g).cuda()
+    idx = [mesh_index.cuda(), contact_index.cuda(), mask.cuda()]
+    _, ref = _input_gradients(net, *[x.cuda() for x in inputs], *idx, weights)
+    net.to(torch.bfloat16)
+    low = [x.cuda().bfloat16() for x in inputs]
+    _, plain = _input_gradients(net, *low, *idx, weights.bfloat16())
+    net.fused_message_passing = True
+    _, fused = _input_gradients(net, *low, *idx, weights.bfloat16())
+    for r, p, f in zip(ref, plain, fused):
+        err_plain = float((p.float() - r).abs().mean())
+        err_fused = float((f.float() - r).abs().mean())
+        assert err_fused < 1.5 * err_plain + 1e-4 * float(r.abs().mean())

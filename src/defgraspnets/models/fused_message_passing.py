@@ -1,4 +1,4 @@
-r"""Fused message passing of the processor blocks (Triton kernels), for inference.
+r"""Fused message passing of the processor blocks (Triton kernels), for inference and planning gradients.
 
 One message-passing block of :mod:`~defgraspnets.models.meshgraphnet` updates every edge with an MLP,
 ``m'_ij = LN(W_K relu(... W_1 relu(W_m m_ij + (W_r h)_i + (W_s h)_j + b) ...))``, sums the messages per
@@ -15,11 +15,22 @@ updated latents ``m_ij + m'_ij`` and adds ``m'_ij`` to float32 per-node sums wit
 ``[h, mesh sum, contact sum]`` so that the concatenation is never formed. Nothing else (E, l)-sized is
 written.
 
+Gradients (``torch.autograd``) with respect to the latents, for planning, which differentiates the
+network's output with respect to the grasp pose with the weights fixed: the forward saves only each
+update's inputs; one backward kernel per edge set recomputes the tile's MLP on chip (the first-layer
+pre-activations, the tail's for the LayerNorm), back-propagates through the LayerNorm and the layers
+(``dz_{k-1} = (dz_k W_k) * [z_{k-1} > 0]``), writes the gradient of the edge latents and adds the
+first-layer gradient to float32 per-node sums for the target and source terms with atomics; the node
+kernel's backward likewise gives the gradients of ``h`` and of both message sums. Weight gradients are not
+computed (a clear error if a weight requires one: training keeps the op-by-op blocks).
+
 The same functions as :class:`~defgraspnets.models.meshgraphnet.ProcessorBlock` up to floating-point rounding
-and the order of the atomic sums; forward only, used where no gradient is needed (scoring, line-search
-trials, inference). Needs Triton and CUDA tensors, or ``TRITON_INTERPRET=1`` (Triton's CPU interpreter,
-which the tests use with float32: the interpreter does not emulate bfloat16 tensor-core products). On CUDA
-they take bfloat16 or float16 latents (the half-precision inference path).
+and the order of the atomic sums (the backward differentiates the unrounded message: the rounding of each
+layer's input to bfloat16 is not differentiated, as in autograd of the op-by-op bfloat16 network). Needs
+Triton and CUDA tensors, or ``TRITON_INTERPRET=1`` (Triton's CPU interpreter, which the tests use with
+float32: the interpreter does not emulate bfloat16 tensor-core products). On CUDA they take bfloat16 or
+float16 latents (the half-precision path). ``torch.compile`` does not trace into them (the kernels are
+already fused; an inductor-compiled backward through them ended in an illegal memory access on the H100).
 """
 
 from __future__ import annotations
@@ -40,6 +51,10 @@ __all__ = ["fused_edge_update", "fused_message_passing_available", "fused_node_u
 
 BLOCK_ROWS = 64  # edges or nodes per program (a 64 x l tile)
 NUM_WARPS = 4
+# the backward keeps more (B, l) tiles live (pre-activations and gradients); measured on an H100 (bf16,
+# l = 128, 2.66M edges): edge backward 6.2 ms with 32 x 4 warps against 9.3 ms with 64 x 8 (node: 64 x 8)
+EDGE_BACKWARD_BLOCK, EDGE_BACKWARD_WARPS = 32, 4
+NODE_BACKWARD_BLOCK, NODE_BACKWARD_WARPS = 64, 8
 
 
 def _interpreting() -> bool:
@@ -185,6 +200,160 @@ if triton is not None:
             out_node_ptr + tile, (h.to(tl.float32) + y.to(h.dtype).to(tl.float32)).to(h.dtype), mask=valid
         )
 
+    @triton.jit
+    def _weight(w_ptr, row_stride, L: tl.constexpr):
+        """The (L, L) block at ``w_ptr`` of an nn.Linear weight (out, in) as stored (``dz @ result`` is the
+        gradient with respect to the layer's input)."""
+        cols = tl.arange(0, L)
+        return tl.load(w_ptr + cols[:, None] * row_stride + cols[None, :])
+
+    @triton.jit
+    def _tail_layer(z, w_rest_ptr, b_rest_ptr, k: tl.constexpr, L: tl.constexpr, IEEE: tl.constexpr):
+        """Pre-activations of tail layer ``k``: ``W_k relu(z) + b_k`` (float32, input rounded to the weights'
+        dtype)."""
+        w = _weight_t(w_rest_ptr + k * L * L, L, L)
+        out = _dot(tl.maximum(z, 0.0).to(w.dtype), w, IEEE)
+        return out + tl.load(b_rest_ptr + k * L + tl.arange(0, L)).to(tl.float32)[None, :]
+
+    @triton.jit
+    def _mlp_tail_backward(
+        z0,
+        dy,
+        w_rest_ptr,
+        b_rest_ptr,
+        gamma_ptr,
+        eps,
+        L: tl.constexpr,
+        K: tl.constexpr,
+        IEEE: tl.constexpr,
+    ):
+        """Gradient with respect to the first-layer pre-activations z0 (B, L) of :func:`_mlp_tail`'s output
+        given its gradient dy (B, L) (float32). The tail is recomputed from z0 on chip: its pre-activations
+        for the LayerNorm, then, going back through layer k, the pre-activations of layer k - 1 (K (K - 1) / 2
+        extra tile products; none for K = 1)."""
+        cols = tl.arange(0, L)
+        z = z0
+        for k in tl.static_range(K):
+            z = _tail_layer(z, w_rest_ptr, b_rest_ptr, k, L, IEEE)
+        mean = tl.sum(z, axis=1) / L
+        d = z - mean[:, None]
+        rstd = 1.0 / tl.sqrt(tl.sum(d * d, axis=1) / L + eps)
+        y_hat = d * rstd[:, None]
+        dy_hat = dy * tl.load(gamma_ptr + cols).to(tl.float32)[None, :]
+        dz = rstd[:, None] * (
+            dy_hat
+            - (tl.sum(dy_hat, axis=1) / L)[:, None]
+            - y_hat * (tl.sum(dy_hat * y_hat, axis=1) / L)[:, None]
+        )
+        for kk in tl.static_range(K):
+            # back through tail layer k = K - 1 - kk, whose input is relu(z_prev)
+            z_prev = z0
+            for j in tl.static_range(K - 1 - kk):
+                z_prev = _tail_layer(z_prev, w_rest_ptr, b_rest_ptr, j, L, IEEE)
+            w = _weight(w_rest_ptr + (K - 1 - kk) * L * L, L, L)
+            dz = tl.where(z_prev > 0.0, _dot(dz.to(w.dtype), w, IEEE), 0.0)
+        return dz
+
+    @triton.jit
+    def _edge_update_backward_kernel(
+        edge_ptr,  # (E, L) edge latents m (the forward's input)
+        target_term_ptr,  # (n, L) W_r h
+        source_term_ptr,  # (n, L) W_s h
+        target_ptr,  # (E,)
+        source_ptr,  # (E,)
+        mask_ptr,  # (E,) bool
+        w_first_ptr,  # (L, L) W_m
+        b_first_ptr,
+        w_rest_ptr,
+        b_rest_ptr,
+        gamma_ptr,
+        grad_out_edge_ptr,  # (E, L) gradient of m + m'
+        grad_agg_ptr,  # (n, L) float32 gradient of the sums by target
+        grad_edge_ptr,  # (E, L) out: gradient of m
+        grad_target_term_ptr,  # (n, L) float32, accumulated: gradient of W_r h
+        grad_source_term_ptr,  # (n, L) float32, accumulated: gradient of W_s h
+        num_edges,
+        eps,
+        L: tl.constexpr,
+        K: tl.constexpr,
+        BLOCK: tl.constexpr,
+        HAS_MASK: tl.constexpr,
+        HAS_GRAD_AGG: tl.constexpr,
+        IEEE: tl.constexpr,
+    ):
+        rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        valid = rows < num_edges
+        cols = tl.arange(0, L)
+        tile = rows[:, None].to(tl.int64) * L + cols[None, :]
+        m = tl.load(edge_ptr + tile, mask=valid[:, None], other=0.0)
+        dst = tl.load(target_ptr + rows, mask=valid, other=0).to(tl.int64)
+        src = tl.load(source_ptr + rows, mask=valid, other=0).to(tl.int64)
+        target_tile = dst[:, None] * L + cols[None, :]
+        source_tile = src[:, None] * L + cols[None, :]
+        # the forward's first-layer pre-activations, recomputed
+        z0 = _dot(m, _weight_t(w_first_ptr, L, L), IEEE)
+        z0 += tl.load(b_first_ptr + cols).to(tl.float32)[None, :]
+        z0 += tl.load(target_term_ptr + target_tile, mask=valid[:, None], other=0.0).to(tl.float32)
+        z0 += tl.load(source_term_ptr + source_tile, mask=valid[:, None], other=0.0).to(tl.float32)
+        keep = valid
+        if HAS_MASK:
+            keep = keep & (tl.load(mask_ptr + rows, mask=valid, other=0) != 0)
+        grad_out = tl.load(grad_out_edge_ptr + tile, mask=valid[:, None], other=0.0).to(tl.float32)
+        # the message m' enters both the updated latent and the sum of its target node
+        dy = grad_out
+        if HAS_GRAD_AGG:
+            dy += tl.load(grad_agg_ptr + target_tile, mask=valid[:, None], other=0.0)
+        dy = tl.where(keep[:, None], dy, 0.0)
+        dz0 = _mlp_tail_backward(z0, dy, w_rest_ptr, b_rest_ptr, gamma_ptr, eps, L, K, IEEE)
+        dz0 = tl.where(keep[:, None] & (z0 > 0.0), dz0, 0.0)
+        w_first = _weight(w_first_ptr, L, L)
+        grad_edge = grad_out + _dot(dz0.to(w_first.dtype), w_first, IEEE)
+        tl.store(grad_edge_ptr + tile, grad_edge.to(m.dtype), mask=valid[:, None])
+        tl.atomic_add(grad_target_term_ptr + target_tile, dz0, mask=keep[:, None], sem="relaxed")
+        tl.atomic_add(grad_source_term_ptr + source_tile, dz0, mask=keep[:, None], sem="relaxed")
+
+    @triton.jit
+    def _node_update_backward_kernel(
+        node_ptr,  # (n, L) h
+        mesh_sum_ptr,  # (n, L) float32
+        contact_sum_ptr,  # (n, L) float32
+        w_first_ptr,  # (L, 3 L)
+        b_first_ptr,
+        w_rest_ptr,
+        b_rest_ptr,
+        gamma_ptr,
+        grad_out_ptr,  # (n, L) gradient of h + f
+        grad_node_ptr,  # (n, L) out: gradient of h
+        grad_mesh_sum_ptr,  # (n, L) float32 out
+        grad_contact_sum_ptr,  # (n, L) float32 out
+        num_nodes,
+        eps,
+        L: tl.constexpr,
+        K: tl.constexpr,
+        BLOCK: tl.constexpr,
+        IEEE: tl.constexpr,
+    ):
+        rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        valid = rows[:, None] < num_nodes
+        cols = tl.arange(0, L)
+        tile = rows[:, None].to(tl.int64) * L + cols[None, :]
+        h = tl.load(node_ptr + tile, mask=valid, other=0.0)
+        mesh_sum = tl.load(mesh_sum_ptr + tile, mask=valid, other=0.0).to(h.dtype)
+        contact_sum = tl.load(contact_sum_ptr + tile, mask=valid, other=0.0).to(h.dtype)
+        z0 = _dot(h, _weight_t(w_first_ptr, 3 * L, L), IEEE)
+        z0 += _dot(mesh_sum, _weight_t(w_first_ptr + L, 3 * L, L), IEEE)
+        z0 += _dot(contact_sum, _weight_t(w_first_ptr + 2 * L, 3 * L, L), IEEE)
+        z0 += tl.load(b_first_ptr + cols).to(tl.float32)[None, :]
+        grad_out = tl.load(grad_out_ptr + tile, mask=valid, other=0.0).to(tl.float32)
+        dz0 = _mlp_tail_backward(z0, grad_out, w_rest_ptr, b_rest_ptr, gamma_ptr, eps, L, K, IEEE)
+        dz0 = tl.where(valid & (z0 > 0.0), dz0, 0.0).to(h.dtype)
+        grad_node = grad_out + _dot(dz0, _weight(w_first_ptr, 3 * L, L), IEEE)
+        tl.store(grad_node_ptr + tile, grad_node.to(h.dtype), mask=valid)
+        tl.store(grad_mesh_sum_ptr + tile, _dot(dz0, _weight(w_first_ptr + L, 3 * L, L), IEEE), mask=valid)
+        tl.store(
+            grad_contact_sum_ptr + tile, _dot(dz0, _weight(w_first_ptr + 2 * L, 3 * L, L), IEEE), mask=valid
+        )
+
 
 def _tail_parameters(rest, latent: int) -> tuple[Tensor, Tensor, Tensor, Tensor, float]:
     """(W (K, l, l), b (K, l), gamma, beta, eps) of the layers after the first of an MLP:
@@ -225,85 +394,206 @@ def _check(latents: tuple[Tensor, ...], weight: Tensor, latent: int) -> None:
             )
 
 
+def _refuse_weight_gradients(module) -> None:
+    """A clear error for a pass with gradients through a module whose weights require them."""
+    if torch.is_grad_enabled() and any(p.requires_grad for p in module.parameters()):
+        raise RuntimeError(
+            "fused message passing differentiates with respect to the latents only (grasp planning); "
+            "freeze the weights (requires_grad_(False)) or train with fused_message_passing off"
+        )
+
+
+class _FusedEdgeUpdate(torch.autograd.Function):
+    """(m, W_r h, W_s h) -> (m + m', sums of m' by target); the backward kernel recomputes the MLP on chip
+    from the saved inputs (nothing (E, l)-sized but the inputs is kept) and returns the gradients of the
+    latents (the weights are constants)."""
+
+    @staticmethod
+    def forward(ctx, edge, target_term, source_term, target, source, mask, *parameters):
+        w_first, b_first, w_rest, b_rest, gamma, beta, eps = parameters
+        E, latent = edge.shape
+        out_edge = torch.empty_like(edge)
+        agg = torch.zeros(target_term.shape[0], latent, dtype=torch.float32, device=edge.device)
+        if E:
+            _edge_update_kernel[(triton.cdiv(E, BLOCK_ROWS),)](
+                edge,
+                target_term,
+                source_term,
+                target,
+                source,
+                mask if mask is not None else target,  # unused without HAS_MASK
+                w_first,
+                b_first,
+                w_rest,
+                b_rest,
+                gamma,
+                beta,
+                out_edge,
+                agg,
+                E,
+                eps,
+                L=latent,
+                K=w_rest.shape[0],
+                BLOCK=BLOCK_ROWS,
+                HAS_MASK=mask is not None,
+                IEEE=w_first.dtype == torch.float32,
+                num_warps=NUM_WARPS,
+            )
+        ctx.save_for_backward(
+            edge, target_term, source_term, target, source, mask, w_first, b_first, w_rest, b_rest
+        )
+        ctx.layer_norm = (gamma, eps)
+        return out_edge, agg
+
+    @staticmethod
+    def backward(ctx, grad_out_edge, grad_agg):
+        edge, target_term, source_term, target, source, mask, w_first, b_first, w_rest, b_rest = (
+            ctx.saved_tensors
+        )
+        gamma, eps = ctx.layer_norm
+        E, latent = edge.shape
+        grad_edge = torch.empty_like(edge)
+        grad_terms = torch.zeros(2, target_term.shape[0], latent, dtype=torch.float32, device=edge.device)
+        if E:
+            _edge_update_backward_kernel[(triton.cdiv(E, EDGE_BACKWARD_BLOCK),)](
+                edge,
+                target_term,
+                source_term,
+                target,
+                source,
+                mask if mask is not None else target,
+                w_first,
+                b_first,
+                w_rest,
+                b_rest,
+                gamma,
+                grad_out_edge.contiguous(),
+                grad_agg.contiguous() if grad_agg is not None else grad_terms,
+                grad_edge,
+                grad_terms[0],
+                grad_terms[1],
+                E,
+                eps,
+                L=latent,
+                K=w_rest.shape[0],
+                BLOCK=EDGE_BACKWARD_BLOCK,
+                HAS_MASK=mask is not None,
+                HAS_GRAD_AGG=grad_agg is not None,
+                IEEE=w_first.dtype == torch.float32,
+                num_warps=EDGE_BACKWARD_WARPS,
+            )
+        grad_terms = grad_terms.to(target_term.dtype)
+        return (grad_edge, grad_terms[0], grad_terms[1]) + (None,) * 10
+
+
+class _FusedNodeUpdate(torch.autograd.Function):
+    """(h, mesh sums, contact sums) -> h + f([h, sums]); backward recomputed on chip, latents only."""
+
+    @staticmethod
+    def forward(ctx, node, mesh_sum, contact_sum, *parameters):
+        w_first, b_first, w_rest, b_rest, gamma, beta, eps = parameters
+        n, latent = node.shape
+        out = torch.empty_like(node)
+        if n:
+            _node_update_kernel[(triton.cdiv(n, BLOCK_ROWS),)](
+                node,
+                mesh_sum,
+                contact_sum,
+                w_first,
+                b_first,
+                w_rest,
+                b_rest,
+                gamma,
+                beta,
+                out,
+                n,
+                eps,
+                L=latent,
+                K=w_rest.shape[0],
+                BLOCK=BLOCK_ROWS,
+                IEEE=w_first.dtype == torch.float32,
+                num_warps=NUM_WARPS,
+            )
+        ctx.save_for_backward(node, mesh_sum, contact_sum, w_first, b_first, w_rest, b_rest)
+        ctx.layer_norm = (gamma, eps)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        node, mesh_sum, contact_sum, w_first, b_first, w_rest, b_rest = ctx.saved_tensors
+        gamma, eps = ctx.layer_norm
+        n, latent = node.shape
+        grad_node = torch.empty_like(node)
+        grad_sums = torch.empty(2, n, latent, dtype=torch.float32, device=node.device)
+        if n:
+            _node_update_backward_kernel[(triton.cdiv(n, NODE_BACKWARD_BLOCK),)](
+                node,
+                mesh_sum,
+                contact_sum,
+                w_first,
+                b_first,
+                w_rest,
+                b_rest,
+                gamma,
+                grad_out.contiguous(),
+                grad_node,
+                grad_sums[0],
+                grad_sums[1],
+                n,
+                eps,
+                L=latent,
+                K=w_rest.shape[0],
+                BLOCK=NODE_BACKWARD_BLOCK,
+                IEEE=w_first.dtype == torch.float32,
+                num_warps=NODE_BACKWARD_WARPS,
+            )
+        return (grad_node, grad_sums[0], grad_sums[1]) + (None,) * 7
+
+
+@torch.compiler.disable
 def fused_edge_update(
     mlp, edge: Tensor, node: Tensor, edge_index: Tensor, mask: Tensor | None = None
 ) -> tuple[Tensor, Tensor]:
     """Updated edge latents ``m + f(m, h_i, h_j)`` (E, l) of an
     :class:`~defgraspnets.models.meshgraphnet.EdgeMLP` ``f``, and the float32 sums of the messages ``f``
     over edges by target node (n, l), in one kernel (module docstring); ``mask`` (E,) bool zeroes the
-    messages of padding edges. Forward only (no autograd)."""
+    messages of padding edges. Differentiable with respect to ``edge`` and ``node`` (one backward kernel
+    that recomputes the MLP from the inputs), not to the weights (a clear error if they require grad)."""
     w_first = mlp.lin_edge.weight
-    _check((edge, node), w_first, w_first.shape[0])
-    w_rest, b_rest, gamma, beta, eps = _tail_parameters(mlp.rest, w_first.shape[0])
-    E, latent = edge.shape
-    # the node terms of the split first layer, one GEMM for both: [W_r; W_s] h
+    latent = w_first.shape[0]
+    _check((edge, node), w_first, latent)
+    _refuse_weight_gradients(mlp)
+    parameters = (w_first.contiguous(), mlp.lin_edge.bias.contiguous()) + _tail_parameters(mlp.rest, latent)
+    # the node terms of the split first layer, one GEMM for both: [W_r; W_s] h (autograd through torch)
     terms = torch.nn.functional.linear(node, torch.cat([mlp.lin_target.weight, mlp.lin_source.weight]))
     target_term, source_term = terms[:, :latent].contiguous(), terms[:, latent:].contiguous()
-    edge = edge.contiguous()
-    out_edge = torch.empty_like(edge)
-    agg = torch.zeros(node.shape[0], latent, dtype=torch.float32, device=edge.device)
-    if E == 0:
-        return out_edge, agg
     source, target = edge_index[0].contiguous(), edge_index[1].contiguous()
-    _edge_update_kernel[(triton.cdiv(E, BLOCK_ROWS),)](
-        edge,
+    return _FusedEdgeUpdate.apply(
+        edge.contiguous(),
         target_term,
         source_term,
         target,
         source,
-        mask.contiguous() if mask is not None else target,  # unused without HAS_MASK
-        w_first.contiguous(),
-        mlp.lin_edge.bias.contiguous(),
-        w_rest,
-        b_rest,
-        gamma,
-        beta,
-        out_edge,
-        agg,
-        E,
-        eps,
-        L=latent,
-        K=w_rest.shape[0],
-        BLOCK=BLOCK_ROWS,
-        HAS_MASK=mask is not None,
-        IEEE=w_first.dtype == torch.float32,
-        num_warps=NUM_WARPS,
+        mask.contiguous() if mask is not None else None,
+        *parameters,
     )
-    return out_edge, agg
 
 
+@torch.compiler.disable
 def fused_node_update(mlp, node: Tensor, mesh_sum: Tensor, contact_sum: Tensor) -> Tensor:
     """``h + f([h, mesh_sum, contact_sum])`` (n, l) of a block's node :class:`~defgraspnets.models.
     meshgraphnet.MLP` ``f`` (first layer 3l -> l) in one kernel, without forming the concatenation;
-    the float32 message sums enter ``f`` in the latent dtype, as in the unfused block. Forward only."""
+    the float32 message sums enter ``f`` in the latent dtype, as in the unfused block. Differentiable with
+    respect to ``node`` and the sums (not the weights), like :func:`fused_edge_update`."""
     first = mlp[0]
     latent = node.shape[1]
     _check((node,), first.weight, latent)
+    _refuse_weight_gradients(mlp)
     if tuple(first.weight.shape) != (latent, 3 * latent):
         raise ValueError(f"the node MLP's first layer must map 3 x {latent} -> {latent} features")
-    w_rest, b_rest, gamma, beta, eps = _tail_parameters(list(mlp)[1:], latent)
-    node = node.contiguous()
-    out = torch.empty_like(node)
-    n = node.shape[0]
-    if n == 0:
-        return out
-    _node_update_kernel[(triton.cdiv(n, BLOCK_ROWS),)](
-        node,
-        mesh_sum.contiguous(),
-        contact_sum.contiguous(),
-        first.weight.contiguous(),
-        first.bias.contiguous(),
-        w_rest,
-        b_rest,
-        gamma,
-        beta,
-        out,
-        n,
-        eps,
-        L=latent,
-        K=w_rest.shape[0],
-        BLOCK=BLOCK_ROWS,
-        IEEE=first.weight.dtype == torch.float32,
-        num_warps=NUM_WARPS,
+    parameters = (first.weight.contiguous(), first.bias.contiguous()) + _tail_parameters(
+        list(mlp)[1:], latent
     )
-    return out
+    return _FusedNodeUpdate.apply(
+        node.contiguous(), mesh_sum.contiguous(), contact_sum.contiguous(), *parameters
+    )

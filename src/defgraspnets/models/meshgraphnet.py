@@ -24,9 +24,10 @@ Exact reformulations for batches of grasps of one object (planning):
        ``log10 E``) are the same in every graph of the batch, so their encoder latents are computed once and
        broadcast; only finger nodes, finger mesh edges and contact edges are encoded per grasp.
 
-Fused message passing for inference (``EncodeProcessDecode.fused_message_passing``): passes without
-gradients may run each block as three Triton kernels (:mod:`~defgraspnets.models.fused_message_passing`;
-same function up to rounding).
+Fused message passing (``EncodeProcessDecode.fused_message_passing``): each block runs as three Triton
+kernels (:mod:`~defgraspnets.models.fused_message_passing`; same function up to rounding) in passes without
+gradients, and in passes with gradients when the blocks' weights are frozen (planning differentiates with
+respect to the grasp pose only; backward kernels recompute each MLP on chip from the block's inputs).
 
 Ablations (thesis Table 7.2) by constructor arguments of :class:`DefGraspNet`:
     V1 ``outputs="separate"``: two networks, one for stress, one for displacement ("joint": one network).
@@ -153,7 +154,8 @@ class ProcessorBlock(nn.Module):
         contact_mask: Tensor | None = None,
     ):
         """:meth:`forward` in three fused kernels (:mod:`~defgraspnets.models.fused_message_passing`): each
-        edge set updated and summed by target, then the nodes updated (forward only, no autograd)."""
+        edge set updated and summed by target, then the nodes updated (differentiable with respect to the
+        latents, not the weights)."""
         mesh, mesh_sum = fused_edge_update(self.mesh_edge, mesh, node, mesh_index)
         contact, contact_sum = fused_edge_update(
             self.contact_edge, contact, node, contact_index, contact_mask
@@ -188,8 +190,14 @@ class EncodeProcessDecode(nn.Module):
         # activation checkpointing: with gradients on, keep only each block's inputs and recompute its
         # intermediate activations in the backward pass (memory ~ L x latents instead of L x MLP layers)
         self.activation_checkpointing = False
-        # fused edge updates (Triton) for passes without gradients, see :mod:`.fused_message_passing`
+        # fused blocks (Triton) for passes without gradients or with frozen weights, see
+        # :mod:`.fused_message_passing`
         self.fused_message_passing = False
+
+    @property
+    def processor_requires_grad(self) -> bool:
+        """Whether any weight of the message-passing blocks requires a gradient (training)."""
+        return any(p.requires_grad for p in self.blocks.parameters())
 
     def encode_object(self, node: Tensor, mesh: Tensor) -> tuple[Tensor, Tensor]:
         """Latents (N, l), (E_o, l) of the object part shared by all graphs of a batch (see :meth:`forward`)
@@ -222,8 +230,11 @@ class EncodeProcessDecode(nn.Module):
             g = node.shape[0]
             h = torch.cat([h_o.expand(g, -1, -1), self.node_encoder(node)], dim=1).flatten(0, 1)
             m = torch.cat([m_o.expand(g, -1, -1), self.mesh_encoder(mesh)], dim=1).flatten(0, 1)
-        recompute = self.activation_checkpointing and torch.is_grad_enabled()
-        fused = self.fused_message_passing and not torch.is_grad_enabled()
+        grad = torch.is_grad_enabled()
+        # the fused kernels differentiate with respect to the latents only: with gradients on, they serve
+        # networks with frozen weights (planning); training keeps the op-by-op blocks
+        fused = self.fused_message_passing and not (grad and self.processor_requires_grad)
+        recompute = self.activation_checkpointing and grad
         for block in self.blocks:
             if fused:
                 h, m, c = block.forward_fused(h, m, c, mesh_index, contact_index, contact_mask)
