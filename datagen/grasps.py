@@ -5,6 +5,7 @@
     python datagen/grasps.py -m object=cuboid_30x30x30,ellipsoid_20x20x20,cylinder_r20_h40
     python datagen/grasps.py -m object=cuboid_50x50x50 shard_count=4 shard_index=0,1,2,3
     python datagen/grasps.py experiments=[pickup,reorientation,linear,angular]   # + DefGraspSim metrics
+    python datagen/grasps.py object=/data/meshes/mug.vtu file_labels.category=cup   # any tet or surface mesh
 
 Config: configs/datagen/grasps.yaml (thesis-scale values in its comments). All logic lives in
 :func:`defgraspnets.grasp.datagen.generate_object_shards`; re-running resumes unfinished shards.
@@ -26,15 +27,19 @@ log = logging.getLogger("datagen.grasps")
 
 @hydra.main(version_base="1.3", config_path="../configs", config_name="datagen/grasps")
 def main(cfg: DictConfig) -> None:
-    from defgraspnets.grasp.datagen import generate_object_shards, structured_box
+    from defgraspnets.grasp.datagen import generate_object_shards, resolve_object_mesh, structured_box
     from defgraspnets.grasp.experiments import experiment_solver_options
     from defgraspnets.grasp.squeeze import squeeze_solver_options
 
-    obj = cfg.object
+    obj, labels = cfg.object, {}
     if obj == "box":
         obj = structured_box(cfg.box.size, cfg.box.divisions)
+    elif Path(obj).suffix:  # a mesh file: tet mesh (.vtu, .msh, ...) or closed surface (.obj, .stl, ...)
+        obj = resolve_object_mesh(obj, target_nodes=cfg.target_nodes, mesher=cfg.mesher)
+        labels = {"category": cfg.file_labels.category, "source": cfg.file_labels.source}
     results = generate_object_shards(
         obj,
+        **labels,
         out_dir=cfg.out_dir,
         youngs_modulus=list(cfg.youngs_modulus),
         num_grasps=cfg.num_grasps,

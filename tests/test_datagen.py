@@ -199,3 +199,34 @@ def test_show_a_sample_as_png_and_vtu(data_dir, tmp_path):
         load_sample(path, g=GRASPS)
     with pytest.raises(FileNotFoundError):
         load_sample(tmp_path / "missing.h5")
+
+
+def test_the_script_grasps_a_tet_mesh_file_with_its_labels(tmp_path):
+    """``python datagen/grasps.py object=<file>``: a tet mesh file is simulated as it is (its stem names the
+    shard, the config labels its category and source); a missing file is a clear error."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    mesh_file = tmp_path / "my_part.vtu"
+    _box().save(mesh_file)
+
+    def run(*args):
+        env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "1"}
+        return subprocess.run(
+            [sys.executable, str(root / "datagen/grasps.py"), *args, f"hydra.run.dir={tmp_path}/run"],
+            cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+
+    r = run(
+        f"object={mesh_file}", "num_grasps=1", "steps=1", "youngs_modulus=[1e6]", "device=cpu",
+        f"out_dir={tmp_path}/grasps", "file_labels.category=widget",
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr[-3000:]
+    shard = GraspShard(tmp_path / "grasps" / shard_file_name("my_part", 0, 1))
+    assert (shard.object.name, shard.object.category, shard.object.source) == ("my_part", "widget", "real")
+    np.testing.assert_allclose(shard.object.points, _box().points)
+    r = run(f"object={tmp_path}/missing.vtu", "device=cpu", f"out_dir={tmp_path}/grasps")
+    assert r.returncode != 0 and "no object mesh file at" in r.stderr
