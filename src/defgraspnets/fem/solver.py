@@ -82,6 +82,10 @@ class SolverOptions:
             length: a contact pressure p penetrates ((p / E) / kappa + zeta / 2) h, reported as
             ``max_penetration``.
         contact_smoothing: zeta, onset width of the C2 penalty in units of h (see ``contact.py``).
+        friction_stick_slip: c, smallest stick zone of a frictional contact in units of its vertex size h_i:
+            the tangential stick stiffness is min(k_i, mu N / (c h_i)) instead of the normal penalty
+            stiffness k_i (0: off; see ``contact.py``). Slip thresholds (the Coulomb limit) are unchanged;
+            sticking vertices may shift by up to c h_i before they slide.
         rtol: a problem has converged when every free residual force component is below
             ``rtol`` times the largest elastic, body-load or actuator force component.
         max_newton_iterations: per load increment before it is halved.
@@ -172,6 +176,7 @@ class SolverOptions:
 
     contact_stiffness: float = 1000.0
     contact_smoothing: float = 0.0
+    friction_stick_slip: float = 0.0
     rtol: float = 1e-7
     max_newton_iterations: int = 40
     max_load_bisections: int = 10
@@ -222,6 +227,10 @@ class SolverOptions:
         for name in ("contact_stiffness", "rtol", "cg_rtol", "max_step_fraction", "escape_fraction"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"SolverOptions.{name} must be > 0, got {getattr(self, name)!r}")
+        if not 0 <= self.friction_stick_slip < 1:
+            raise ValueError(
+                f"SolverOptions.friction_stick_slip must be in [0, 1), got {self.friction_stick_slip!r}"
+            )
         if not 0 <= self.contact_smoothing < 1:
             raise ValueError(
                 f"SolverOptions.contact_smoothing must be in [0, 1), got {self.contact_smoothing!r}"
@@ -1074,6 +1083,7 @@ class QuasiStaticSolver:
             self._youngs,
             float(self.options.contact_stiffness),
             float(self.options.contact_smoothing),
+            float(self.options.friction_stick_slip),
             self._bodies,
             self._lag_force,
             self._lag_normal,

@@ -73,7 +73,20 @@ def squeeze_solver_options(**overrides) -> fem.SolverOptions:
     needs 3-10): the batch advances in lockstep, and out of 100 grasps of the benchmark box a few tilted
     ones spent 1000-2000 iterations per step at 10-15 N (friction re-lagging), holding up the other 97.
     Those grasps are flagged NOT_CONVERGED and left out of data sets, as the thesis leaves out unstable
-    grasps."""
+    grasps.
+
+    Friction is not regularised (``friction_stick_slip`` = 0). At E = 20 kPa the soft box's failing grasps
+    stall where the pad's end rim meets the compressed top edge: Newton proposes millimetre moves of a
+    vertex there and the line search cuts them to 1/64-1/32 because the *penalty* energy rises (a vertex
+    a few micrometres outside the rim, or sliding over it, penetrates), while the friction energy keeps
+    falling along the step. A stick zone of 0.05 h (CPU, "direct", 0-15 N in 50 steps) changed 0 -> 1
+    converged of 8 such grasps (7178 -> 7099 Newton iterations; grasp 20 failed earlier, at step 31
+    instead of 42) and 6368 -> 6138 iterations on 8 grasps that converge either way. At 200 kPa it
+    helps the tilted grasps whose friction keeps re-lagging (grasps 0-7: 6 -> 8 converged, 8164 -> 6348
+    iterations), but it is not a harmless numerical knob at this mesh size: 0.05 h (0.29 mm) is a
+    fifth of the grasps' displacements, and the final fields moved by 5-12 % of the largest displacement
+    (0.08-0.19 mm of 1.5-2.8 mm) at 200 kPa and, for 4 of 8 tilted grasps at 20 kPa, to another
+    equilibrium (up to 65 %). Data sets keep the unregularised friction."""
     return fem.SolverOptions(
         **{
             "contact_smoothing": 1e-3,
