@@ -103,6 +103,10 @@ class SolverOptions:
         friction_relag_iterations: Newton iterations of an increment that re-lag the friction normal forces
             before they are frozen; max_friction_relags: further re-lags allowed to reach a state whose normal
             forces equal its lagged ones.
+        relag_friction_on_retry: a load increment that failed is retried (halved) with the friction normal
+            forces re-lagged at every Newton iteration, never frozen (a converged state is then consistent
+            with its own normal forces by construction): where a few contact vertices carry the load (the
+            pads on a stiff curved fTetWild mesh), frozen lags and their re-lag cycles never settle.
         friction_rtol: a converged state is consistent with its lagged normal forces when every contact's
             friction capacity error ``mu (|N - N_lag| + N |n - n_lag|)`` is below the residual tolerance
             (default, ``friction_rtol = 0``: Coulomb holds per contact to the Newton tolerance), or when
@@ -186,6 +190,7 @@ class SolverOptions:
     max_step_fraction: float = 0.1
     friction_relag_iterations: int = 4
     max_friction_relags: int = 8
+    relag_friction_on_retry: bool = False
     friction_rtol: float = 0.0
     friction_relaxation: bool = True
     max_newton_per_solve: int = 0
@@ -1310,6 +1315,7 @@ class QuasiStaticSolver:
         lam_done = np.zeros(B)
         lam_try = np.where(todo, float(np.clip(initial_fraction, 1e-6, 1.0)), 0.0)
         bisections = np.zeros(B, dtype=int)
+        relag_every = np.zeros(B, dtype=bool)  # re-lag friction at every Newton iteration (after a failure)
         newton_total = np.zeros(B, dtype=int)
         linear_total = np.zeros(B, dtype=int)
         residual = np.zeros(B)
@@ -1321,7 +1327,7 @@ class QuasiStaticSolver:
         while todo.any():
             log.debug("load increment: fractions %s -> %s", lam_done[todo][:4], lam_try[todo][:4])
             self._start_increment(change * (lam_try - lam_done)[:, None], lam_try, start, end, todo)
-            ok, fail_status, it, lin, res = self._newton(todo)
+            ok, fail_status, it, lin, res = self._newton(todo, relag_every)
             newton_total += it
             linear_total += lin
             residual = np.where(todo, res, residual)
@@ -1354,6 +1360,8 @@ class QuasiStaticSolver:
                 todo &= ~giveup
                 retry = bad & ~giveup
                 lam_try[retry] = 0.5 * (lam_done[retry] + lam_try[retry])
+                if o.relag_friction_on_retry:
+                    relag_every |= retry
             if o.max_newton_per_solve:
                 spent = todo & (newton_total >= o.max_newton_per_solve)
                 for b in np.nonzero(spent)[0]:
@@ -1407,8 +1415,9 @@ class QuasiStaticSolver:
         return out
 
     # ------------------------------------------------------------------ Newton
-    def _newton(self, mask: np.ndarray):
-        """Newton iterations on the masked problems at their current loads.
+    def _newton(self, mask: np.ndarray, relag_every: np.ndarray | None = None):
+        """Newton iterations on the masked problems at their current loads (``relag_every``: problems whose
+        friction normal forces are re-lagged at every iteration, ``SolverOptions.relag_friction_on_retry``).
 
         Returns per problem: success, failure status, iterations, Krylov iterations, final residual."""
         o = self.options
@@ -1442,6 +1451,8 @@ class QuasiStaticSolver:
             self._relag_friction(relag & working, accelerate=stale if o.friction_relaxation else None)
             stale = np.zeros(B, dtype=bool)
             relag = working & (iters < o.friction_relag_iterations)
+            if relag_every is not None:
+                relag |= working & relag_every
             active = self._active_array(working)
             fscale, lscale = self._assemble(active)
             res_arr = self._scratch[2]
@@ -1462,6 +1473,8 @@ class QuasiStaticSolver:
                 working &= ~nonfinite
             conv = working & (res <= o.rtol * scale + atol)
             frozen = conv & (iters >= o.friction_relag_iterations)
+            if relag_every is not None:
+                frozen &= ~relag_every  # re-lagged at this very state: consistent
             if frozen.any():
                 # lag consistency: the converged state's own friction capacities must equal the lagged ones
                 stale = self._friction_inconsistent(frozen, o.rtol * scale + atol)
