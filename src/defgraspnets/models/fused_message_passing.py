@@ -116,6 +116,45 @@ if triton is not None:
         return y * gamma[None, :] + beta[None, :]
 
     @triton.jit
+    def _edge_first_layer(
+        edge_ptr, target_term_ptr, source_term_ptr, target_ptr, source_ptr, w_first_ptr, b_first_ptr,
+        rows, valid, L: tl.constexpr, IEEE: tl.constexpr,
+    ):  # fmt: skip
+        """A tile's edge latents m, target and source nodes, and first-layer pre-activations
+        ``W_m m + b + (W_r h)_i + (W_s h)_j`` (float32) of the edge rows ``rows`` (``valid`` of them)."""
+        cols = tl.arange(0, L)
+        tile = rows[:, None].to(tl.int64) * L + cols[None, :]
+        m = tl.load(edge_ptr + tile, mask=valid[:, None], other=0.0)
+        dst = tl.load(target_ptr + rows, mask=valid, other=0).to(tl.int64)
+        src = tl.load(source_ptr + rows, mask=valid, other=0).to(tl.int64)
+        z = _dot(m, _weight_t(w_first_ptr, L, L), IEEE)
+        z += tl.load(b_first_ptr + cols).to(tl.float32)[None, :]
+        gathered = valid[:, None]
+        z += tl.load(target_term_ptr + dst[:, None] * L + cols[None, :], mask=gathered, other=0.0).to(
+            tl.float32
+        )
+        z += tl.load(source_term_ptr + src[:, None] * L + cols[None, :], mask=gathered, other=0.0).to(
+            tl.float32
+        )
+        return m, dst, src, z
+
+    @triton.jit
+    def _node_first_layer(
+        node_ptr, mesh_sum_ptr, contact_sum_ptr, w_first_ptr, b_first_ptr, tile, valid,
+        L: tl.constexpr, IEEE: tl.constexpr,
+    ):  # fmt: skip
+        """A tile's node latents h and first-layer pre-activations on ``[h, mesh sum, contact sum]``
+        (float32; the float32 sums enter the MLP in the latent dtype, as in the unfused block)."""
+        h = tl.load(node_ptr + tile, mask=valid, other=0.0)
+        mesh_sum = tl.load(mesh_sum_ptr + tile, mask=valid, other=0.0).to(h.dtype)
+        contact_sum = tl.load(contact_sum_ptr + tile, mask=valid, other=0.0).to(h.dtype)
+        z = _dot(h, _weight_t(w_first_ptr, 3 * L, L), IEEE)
+        z += _dot(mesh_sum, _weight_t(w_first_ptr + L, 3 * L, L), IEEE)
+        z += _dot(contact_sum, _weight_t(w_first_ptr + 2 * L, 3 * L, L), IEEE)
+        z += tl.load(b_first_ptr + tl.arange(0, L)).to(tl.float32)[None, :]
+        return h, z
+
+    @triton.jit
     def _edge_update_kernel(
         edge_ptr,  # (E, L) edge latents m
         target_term_ptr,  # (n, L) W_r h (no bias)
@@ -143,18 +182,10 @@ if triton is not None:
         valid = rows < num_edges
         cols = tl.arange(0, L)
         tile = rows[:, None].to(tl.int64) * L + cols[None, :]
-        m = tl.load(edge_ptr + tile, mask=valid[:, None], other=0.0)
-        dst = tl.load(target_ptr + rows, mask=valid, other=0).to(tl.int64)
-        src = tl.load(source_ptr + rows, mask=valid, other=0).to(tl.int64)
-        z = _dot(m, _weight_t(w_first_ptr, L, L), IEEE)
-        z += tl.load(b_first_ptr + cols).to(tl.float32)[None, :]
-        gathered = valid[:, None]
-        z += tl.load(target_term_ptr + dst[:, None] * L + cols[None, :], mask=gathered, other=0.0).to(
-            tl.float32
-        )
-        z += tl.load(source_term_ptr + src[:, None] * L + cols[None, :], mask=gathered, other=0.0).to(
-            tl.float32
-        )
+        m, dst, src, z = _edge_first_layer(
+            edge_ptr, target_term_ptr, source_term_ptr, target_ptr, source_ptr, w_first_ptr, b_first_ptr,
+            rows, valid, L, IEEE,
+        )  # fmt: skip
         y = _mlp_tail(z, w_rest_ptr, b_rest_ptr, gamma_ptr, beta_ptr, eps, L, K, IEEE)
         keep = valid
         if HAS_MASK:
@@ -187,14 +218,9 @@ if triton is not None:
         valid = rows[:, None] < num_nodes
         cols = tl.arange(0, L)
         tile = rows[:, None].to(tl.int64) * L + cols[None, :]
-        h = tl.load(node_ptr + tile, mask=valid, other=0.0)
-        # the sums enter the MLP in the latent dtype, as in the unfused block
-        mesh_sum = tl.load(mesh_sum_ptr + tile, mask=valid, other=0.0).to(h.dtype)
-        contact_sum = tl.load(contact_sum_ptr + tile, mask=valid, other=0.0).to(h.dtype)
-        z = _dot(h, _weight_t(w_first_ptr, 3 * L, L), IEEE)
-        z += _dot(mesh_sum, _weight_t(w_first_ptr + L, 3 * L, L), IEEE)
-        z += _dot(contact_sum, _weight_t(w_first_ptr + 2 * L, 3 * L, L), IEEE)
-        z += tl.load(b_first_ptr + cols).to(tl.float32)[None, :]
+        h, z = _node_first_layer(
+            node_ptr, mesh_sum_ptr, contact_sum_ptr, w_first_ptr, b_first_ptr, tile, valid, L, IEEE
+        )
         y = _mlp_tail(z, w_rest_ptr, b_rest_ptr, gamma_ptr, beta_ptr, eps, L, K, IEEE)
         tl.store(
             out_node_ptr + tile, (h.to(tl.float32) + y.to(h.dtype).to(tl.float32)).to(h.dtype), mask=valid
@@ -285,16 +311,13 @@ if triton is not None:
         valid = rows < num_edges
         cols = tl.arange(0, L)
         tile = rows[:, None].to(tl.int64) * L + cols[None, :]
-        m = tl.load(edge_ptr + tile, mask=valid[:, None], other=0.0)
-        dst = tl.load(target_ptr + rows, mask=valid, other=0).to(tl.int64)
-        src = tl.load(source_ptr + rows, mask=valid, other=0).to(tl.int64)
+        # the forward's first-layer pre-activations, recomputed
+        m, dst, src, z0 = _edge_first_layer(
+            edge_ptr, target_term_ptr, source_term_ptr, target_ptr, source_ptr, w_first_ptr, b_first_ptr,
+            rows, valid, L, IEEE,
+        )  # fmt: skip
         target_tile = dst[:, None] * L + cols[None, :]
         source_tile = src[:, None] * L + cols[None, :]
-        # the forward's first-layer pre-activations, recomputed
-        z0 = _dot(m, _weight_t(w_first_ptr, L, L), IEEE)
-        z0 += tl.load(b_first_ptr + cols).to(tl.float32)[None, :]
-        z0 += tl.load(target_term_ptr + target_tile, mask=valid[:, None], other=0.0).to(tl.float32)
-        z0 += tl.load(source_term_ptr + source_tile, mask=valid[:, None], other=0.0).to(tl.float32)
         keep = valid
         if HAS_MASK:
             keep = keep & (tl.load(mask_ptr + rows, mask=valid, other=0) != 0)
@@ -337,13 +360,9 @@ if triton is not None:
         valid = rows[:, None] < num_nodes
         cols = tl.arange(0, L)
         tile = rows[:, None].to(tl.int64) * L + cols[None, :]
-        h = tl.load(node_ptr + tile, mask=valid, other=0.0)
-        mesh_sum = tl.load(mesh_sum_ptr + tile, mask=valid, other=0.0).to(h.dtype)
-        contact_sum = tl.load(contact_sum_ptr + tile, mask=valid, other=0.0).to(h.dtype)
-        z0 = _dot(h, _weight_t(w_first_ptr, 3 * L, L), IEEE)
-        z0 += _dot(mesh_sum, _weight_t(w_first_ptr + L, 3 * L, L), IEEE)
-        z0 += _dot(contact_sum, _weight_t(w_first_ptr + 2 * L, 3 * L, L), IEEE)
-        z0 += tl.load(b_first_ptr + cols).to(tl.float32)[None, :]
+        h, z0 = _node_first_layer(
+            node_ptr, mesh_sum_ptr, contact_sum_ptr, w_first_ptr, b_first_ptr, tile, valid, L, IEEE
+        )
         grad_out = tl.load(grad_out_ptr + tile, mask=valid, other=0.0).to(tl.float32)
         dz0 = _mlp_tail_backward(z0, grad_out, w_rest_ptr, b_rest_ptr, gamma_ptr, eps, L, K, IEEE)
         dz0 = tl.where(valid & (z0 > 0.0), dz0, 0.0).to(h.dtype)
