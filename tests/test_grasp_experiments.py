@@ -358,18 +358,10 @@ def test_off_axis_grasp_pivots_at_pickup_force_but_holds_at_slip_force(box):
 
 def _squeeze_every_replica(self, replicas, desc):
     """GraspExperiments._squeezed as it was before the squeeze was shared: every replica squeezed itself."""
-    from defgraspnets.grasp.squeeze import make_squeeze_solver, squeeze_ramp
+    from defgraspnets.grasp.squeeze import squeeze_ramp
 
     rows = np.repeat(np.arange(self.num_grasps), replicas)
-    solver = make_squeeze_solver(
-        self.mesh,
-        self.grasps[rows],
-        self.material,
-        friction=self.settings.friction,
-        gripper=self.gripper,
-        device=self.device,
-        options=self.options,
-    )
+    solver = self._solver(rows)
     eqs = squeeze_ramp(solver, self.pickup_force, self.settings.squeeze_steps)
     return solver, eqs[-1], self.finger_frames[rows][:, :, :3, 1], rows
 

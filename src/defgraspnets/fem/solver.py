@@ -1415,7 +1415,7 @@ class QuasiStaticSolver:
         return out
 
     # ------------------------------------------------------------------ Newton
-    def _newton(self, mask: np.ndarray, relag_every: np.ndarray | None = None):
+    def _newton(self, mask: np.ndarray, relag_every: np.ndarray):
         """Newton iterations on the masked problems at their current loads (``relag_every``: problems whose
         friction normal forces are re-lagged at every iteration, ``SolverOptions.relag_friction_on_retry``).
 
@@ -1450,9 +1450,7 @@ class QuasiStaticSolver:
         for _ in range((o.max_newton_iterations + 1) * (o.max_friction_relags + 1)):
             self._relag_friction(relag & working, accelerate=stale if o.friction_relaxation else None)
             stale = np.zeros(B, dtype=bool)
-            relag = working & (iters < o.friction_relag_iterations)
-            if relag_every is not None:
-                relag |= working & relag_every
+            relag = working & ((iters < o.friction_relag_iterations) | relag_every)
             active = self._active_array(working)
             fscale, lscale = self._assemble(active)
             res_arr = self._scratch[2]
@@ -1472,9 +1470,8 @@ class QuasiStaticSolver:
                 status[nonfinite] = SolveStatus.NONFINITE
                 working &= ~nonfinite
             conv = working & (res <= o.rtol * scale + atol)
-            frozen = conv & (iters >= o.friction_relag_iterations)
-            if relag_every is not None:
-                frozen &= ~relag_every  # re-lagged at this very state: consistent
+            # (problems re-lagged at every iteration were re-lagged at this very state: consistent)
+            frozen = conv & (iters >= o.friction_relag_iterations) & ~relag_every
             if frozen.any():
                 # lag consistency: the converged state's own friction capacities must equal the lagged ones
                 stale = self._friction_inconsistent(frozen, o.rtol * scale + atol)

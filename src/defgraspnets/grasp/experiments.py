@@ -505,6 +505,19 @@ class GraspExperiments:
 
         return tqdm(iterable, desc=desc, leave=False)
 
+    def _solver(self, rows: np.ndarray) -> fem.QuasiStaticSolver:
+        """A squeeze solver (pads at first contact, the experiments' friction and options) with one problem
+        per entry of ``rows`` (indices of the grasps)."""
+        return make_squeeze_solver(
+            self.mesh,
+            self.grasps[rows],
+            self.material,
+            friction=self.settings.friction,
+            gripper=self.gripper,
+            device=self.device,
+            options=self.options,
+        )
+
     def _squeeze(self) -> tuple[fem.QuasiStaticSolver, fem.Equilibrium]:
         """The G grasps squeezed to F_p once, in a solver of one problem per grasp, and their equilibrium at
         F_p; cached (per squeeze force, steps and friction) and never solved further: every experiment
@@ -513,15 +526,7 @@ class GraspExperiments:
         key = (self.pickup_force, s.squeeze_steps, s.friction)
         cached = self._squeeze_cache
         if cached is None or cached[0] != key:
-            solver = make_squeeze_solver(
-                self.mesh,
-                self.grasps,
-                self.material,
-                friction=s.friction,
-                gripper=self.gripper,
-                device=self.device,
-                options=self.options,
-            )
+            solver = self._solver(np.arange(self.num_grasps))
             eqs = squeeze_ramp(solver, self.pickup_force, s.squeeze_steps, progress=self.progress)
             cached = self._squeeze_cache = (key, solver, eqs[-1])
         return cached[1], cached[2]
@@ -536,15 +541,7 @@ class GraspExperiments:
         the closing directions and the grasp of each problem."""
         rows = np.repeat(np.arange(self.num_grasps), replicas)
         squeezed, eq = self._squeeze()
-        solver = make_squeeze_solver(
-            self.mesh,
-            self.grasps[rows],
-            self.material,
-            friction=self.settings.friction,
-            gripper=self.gripper,
-            device=self.device,
-            options=self.options,
-        )
+        solver = self._solver(rows)
         solver.copy_state_from(squeezed, rows)
         frames = self.finger_frames[rows]
         return solver, eq.take(rows), frames[:, :, :3, 1], rows
