@@ -37,6 +37,19 @@ def _graph(n=40, mesh_edges=200, contact_edges=30, seed=1):
     return mesh_index, contact_index, mask, g
 
 
+def _spy_on_launches(monkeypatch, kernel: str) -> list:
+    """The grids of every launch of the Triton kernel ``fe.<kernel>`` from now on (the kernel still runs)."""
+    calls, original = [], getattr(fe, kernel)
+
+    class Spy:
+        def __getitem__(self, grid):
+            calls.append(grid)
+            return original[grid]
+
+    monkeypatch.setattr(fe, kernel, Spy())
+    return calls
+
+
 @needs_kernels
 @pytest.mark.parametrize("hidden_layers", [1, 2, 3])
 def test_fused_network_equals_the_op_by_op_network(hidden_layers):
@@ -80,7 +93,7 @@ def test_fused_edge_update_gives_the_updated_latents_and_the_sums_per_target():
 
 
 @needs_kernels
-def test_trainable_weights_keep_the_op_by_op_blocks_in_passes_with_gradients():
+def test_trainable_weights_keep_the_op_by_op_blocks_in_passes_with_gradients(monkeypatch):
     """Training (weights that require gradients) never calls a kernel; the fused forward still serves its
     passes without gradients; calling a fused update directly with trainable weights is a clear error."""
     mesh_index, contact_index, mask, g = _graph()
@@ -88,25 +101,14 @@ def test_trainable_weights_keep_the_op_by_op_blocks_in_passes_with_gradients():
     net.fused_message_passing = True
     node = torch.randn(40, 7, generator=g, requires_grad=True)
     mesh, contact = torch.randn(200, 5, generator=g), torch.randn(30, 6, generator=g)
-    calls = []
-    original = fe._edge_update_kernel
-
-    class Spy:
-        def __getitem__(self, grid):
-            calls.append(grid)
-            return original[grid]
-
-    try:
-        fe._edge_update_kernel = Spy()
-        out = net(node, mesh, contact, mesh_index, contact_index, mask)
-        assert out.requires_grad and not calls
-        out.sum().backward()
-        assert net.blocks[0].node[0].weight.grad is not None  # weight gradients, for training
-        with torch.no_grad():
-            fused = net(node, mesh, contact, mesh_index, contact_index, mask)
-        assert len(calls) == 2 * 2  # mesh and contact edges of each of the 2 blocks
-    finally:
-        fe._edge_update_kernel = original
+    calls = _spy_on_launches(monkeypatch, "_edge_update_kernel")
+    out = net(node, mesh, contact, mesh_index, contact_index, mask)
+    assert out.requires_grad and not calls
+    out.sum().backward()
+    assert net.blocks[0].node[0].weight.grad is not None  # weight gradients, for training
+    with torch.no_grad():
+        fused = net(node, mesh, contact, mesh_index, contact_index, mask)
+    assert len(calls) == 2 * 2  # mesh and contact edges of each of the 2 blocks
     torch.testing.assert_close(fused, out.detach(), rtol=1e-5, atol=1e-5 * float(out.detach().abs().max()))
     with pytest.raises(RuntimeError, match="freeze the weights"):
         fe.fused_edge_update(
@@ -123,7 +125,7 @@ def _input_gradients(net, node, mesh, contact, mesh_index, contact_index, mask, 
 
 @needs_kernels
 @pytest.mark.parametrize("hidden_layers", [1, 2, 3])
-def test_fused_gradients_equal_the_op_by_op_gradients(hidden_layers):
+def test_fused_gradients_equal_the_op_by_op_gradients(hidden_layers, monkeypatch):
     """Frozen weights (planning): the backward kernels give the op-by-op network's input gradients (node,
     mesh-edge and contact-edge features, through the encoders, 3 blocks with masked padding edges, the
     decoder), float32, to rounding (the op-by-op network's gradients are checked against finite differences
@@ -139,19 +141,8 @@ def test_fused_gradients_equal_the_op_by_op_gradients(hidden_layers):
     weights = torch.randn(40, 4, generator=g)
     ref_out, ref = _input_gradients(net, node, mesh, contact, mesh_index, contact_index, mask, weights)
     net.fused_message_passing = True
-    calls = []
-    original = fe._edge_update_backward_kernel
-
-    class Spy:
-        def __getitem__(self, grid):
-            calls.append(grid)
-            return original[grid]
-
-    try:
-        fe._edge_update_backward_kernel = Spy()
-        out, fused = _input_gradients(net, node, mesh, contact, mesh_index, contact_index, mask, weights)
-    finally:
-        fe._edge_update_backward_kernel = original
+    calls = _spy_on_launches(monkeypatch, "_edge_update_backward_kernel")
+    out, fused = _input_gradients(net, node, mesh, contact, mesh_index, contact_index, mask, weights)
     assert len(calls) == 2 * 3  # the backward ran in the kernels
     torch.testing.assert_close(out, ref_out, rtol=1e-5, atol=1e-5 * float(ref_out.abs().max()))
     for a, b in zip(fused, ref):
