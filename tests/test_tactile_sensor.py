@@ -183,3 +183,26 @@ def test_unsupported_indenters_are_rejected(sensor):
         MembraneSimulator(sensor, object(), _gas(sensor), intrinsics=None)
     with pytest.raises(IndenterError, match="supports"):
         fem_shape("sphere")
+
+
+def test_default_c2_contact_onset_barely_moves_a_poke(sensor):
+    """membrane_solver_options smooths the penalty's onset over 1 % of an element (it saves Newton
+    iterations where contact patches slide); a pole poke's force moves by far less than the data's own
+    accuracy against the plain C1 penalty."""
+    import dataclasses
+
+    from defgraspnets.tactile.sensor import membrane_solver_options
+
+    default = membrane_solver_options("cpu")
+    assert default.contact_smoothing > 0
+    forces = []
+    for options in (default, dataclasses.replace(default, contact_smoothing=0.0)):
+        sim = MembraneSimulator(
+            sensor, SPHERE, _gas(sensor), batch_size=1, intrinsics=None, options=options, device="cpu"
+        )
+        assert sim.solver.options.contact_smoothing == options.contact_smoothing
+        r = sim.indent([sim.pole_indentation(0.006)], render=False)[0]
+        assert r.converged
+        forces.append(r.contact_force)
+    assert forces[0][2] > 0.1  # N: a real poke
+    np.testing.assert_allclose(forces[0], forces[1], rtol=0, atol=5e-3 * forces[1][2])
