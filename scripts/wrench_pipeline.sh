@@ -12,12 +12,18 @@
 #   data directory: the shards interleave the repeated grid, so shards made with another value do not
 #   fit together. Poking never repeats. Training splits the forearm set by grid state (all repeats of a
 #   state on one side, defgraspnets.data.tactile_datamodule).
+# generate-gpu: one process on one GPU (device=cuda) working through shards 0.. of every STRIDE-th path
+#   of the DATASET grid split into SHARD_COUNT interleaved shards, each shard's paths solved in one
+#   batch (env BATCH, default 64: shards of <= 64 paths, the shards' paths are batched at most BATCH at a
+#   time) until SECONDS are spent (a shard cut short resumes on the next call):
+#   bash scripts/wrench_pipeline.sh generate-gpu DATASET STRIDE SHARD_COUNT [SECONDS]
+#   e.g. generate-gpu poke 4 8 (every 4th poke path: 500 paths, 2500 states, ~17 min on an H100) and
+#   generate-gpu forearm 2 3. Many processes on one GPU are slower than one batched process.
 # train: the three models of §3.4 on the finished shards (trainer.max_time bounds each), then
 #   scripts/evaluate_wrench.py and scripts/benchmark_wrench_cnn.py; results into OUT_DIR.
 set -uo pipefail
 cd "$(dirname "$0")/.."
-phase=${1:?generate or train}
-budget=${2:?seconds}
+phase=${1:?generate, generate-gpu or train}
 REPEATS=${REPEATS:-1}
 
 run_shards() {  # dataset shard_count worker workers deadline
@@ -33,6 +39,7 @@ run_shards() {  # dataset shard_count worker workers deadline
 }
 
 if [[ $phase == generate ]]; then
+    budget=${2:?seconds}
     poke_workers=${3:-12}
     forearm_workers=${4:-4}
     deadline=$(($(date +%s) + budget))
@@ -43,7 +50,22 @@ if [[ $phase == generate ]]; then
         echo "$d: $(ls data/tactile/$d/*.h5 2>/dev/null | wc -l) finished shards"
         grep -h "samples," logs/datagen_tactile/$d/*/*.log 2>/dev/null | sed 's/.*INFO\] - //'
     done
+elif [[ $phase == generate-gpu ]]; then
+    dataset=$2
+    stride=${3:?stride}
+    count=${4:?shard count}
+    deadline=$(($(date +%s) + ${5:-86400}))
+    for ((i = 0; i < count; i++)); do
+        left=$((deadline - $(date +%s)))
+        ((left > 10)) || break
+        timeout "$left" python datagen/tactile.py dataset="$dataset" device=cuda batch_size="${BATCH:-64}" \
+            stride="$stride" limit=null shard_count="$count" shard_index="$i" \
+            shard_name="$(printf 'shard_%03d' "$i")" repeats="$REPEATS" progress=false \
+            hydra.run.dir="logs/datagen_tactile/$dataset/$(printf '%03d' "$i")" || break
+    done
+    grep -h "samples," logs/datagen_tactile/"$dataset"/*/*.log 2>/dev/null | sed 's/.*INFO\] - //'
 elif [[ $phase == train ]]; then
+    budget=${2:?seconds}
     out=${3:?output directory}
     shift 3  # the rest: overrides for train.py, e.g. data.batch_size=16
     mkdir -p "$out"
@@ -60,6 +82,6 @@ elif [[ $phase == train ]]; then
     python scripts/benchmark_wrench_cnn.py device=cuda ckpt_path="$out/wrench_poke.ckpt" out="$out/wrench_cnn_cuda.json"
     python scripts/benchmark_wrench_cnn.py device=cpu ckpt_path="$out/wrench_poke.ckpt" out="$out/wrench_cnn_cpu_device_host.json"
 else
-    echo "unknown phase $phase (generate | train)" >&2
+    echo "unknown phase $phase (generate | generate-gpu | train)" >&2
     exit 2
 fi
