@@ -33,9 +33,11 @@ def main(cfg: DictConfig) -> None:
     from defgraspnets.tactile.datasets import generate_tactile_dataset
     from defgraspnets.tactile.indenters import CapsuleIndenter, SphereIndenter
     from defgraspnets.tactile.membrane import build_membrane
+    from defgraspnets.tactile.sensor import membrane_solver_options
 
     if cfg.device is not None:
         wp.set_device(cfg.device)
+    solver_options = membrane_solver_options(cfg.device, **OmegaConf.to_container(cfg.solver, resolve=True))
     sensor = build_membrane(cap_divisions=cfg.membrane.cap_divisions, layers=cfg.membrane.layers)
     if cfg.dataset == "poke":
         indenter = SphereIndenter(radius=cfg.indenter.radius)
@@ -61,6 +63,7 @@ def main(cfg: DictConfig) -> None:
         progress=cfg.progress,
         repeats=cfg.repeats,
         perturbation=OmegaConf.to_container(cfg.perturbation, resolve=True),
+        solver_options=solver_options,
     )
     if counts["skipped"] < 0:
         log.info("%s is already finished (delete it to regenerate)", counts["path"])

@@ -322,7 +322,14 @@ def test_config_perturbation_block_is_valid():
     with initialize_config_dir(config_dir=str(root / "configs"), version_base="1.3"):
         cfg = compose(config_name="datagen/tactile", overrides=[f"paths.root_dir={root}"])
         thesis = compose(config_name="datagen/tactile", overrides=["repeats=5", "perturbation.seed=3"])
+        plain = compose(config_name="datagen/tactile", overrides=["solver.contact_smoothing=0"])
     assert cfg.repeats == 1
+    # solver.*: null keeps the sensor's defaults; a set key reaches the FEM options
+    from defgraspnets.tactile.sensor import membrane_solver_options
+
+    default = membrane_solver_options("cpu", **OmegaConf.to_container(cfg.solver))
+    assert default == membrane_solver_options("cpu")
+    assert membrane_solver_options("cpu", **OmegaConf.to_container(plain.solver)).contact_smoothing == 0.0
     p = ForearmPerturbation.from_mapping(OmegaConf.to_container(cfg.perturbation))
     assert p == ForearmPerturbation()  # the documented defaults are the config's
     assert thesis.repeats == 5 and ForearmPerturbation.from_mapping(thesis.perturbation).seed == 3

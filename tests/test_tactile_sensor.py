@@ -206,3 +206,23 @@ def test_default_c2_contact_onset_barely_moves_a_poke(sensor):
         forces.append(r.contact_force)
     assert forces[0][2] > 0.1  # N: a real poke
     np.testing.assert_allclose(forces[0], forces[1], rtol=0, atol=5e-3 * forces[1][2])
+
+
+def test_membrane_solver_options_take_checked_overrides(sensor):
+    """The datagen's `solver.*` keys reach the sensor's FEM options; None keeps the default, unknown or
+    invalid options are rejected by name."""
+    from defgraspnets.tactile.datasets import make_simulator
+    from defgraspnets.tactile.sensor import membrane_solver_options
+
+    base = membrane_solver_options("cpu")
+    assert (base.linear_solver, base.rtol, base.contact_smoothing) == ("direct", 1e-5, 1e-2)
+    tuned = membrane_solver_options("cpu", rtol=1e-6, contact_smoothing=None, linear_solver="dense")
+    assert (tuned.linear_solver, tuned.rtol, tuned.contact_smoothing) == ("dense", 1e-6, 1e-2)
+    with pytest.raises(TypeError, match="contact_smothing"):
+        membrane_solver_options("cpu", contact_smothing=0.1)
+    with pytest.raises(ValueError, match="contact_smoothing"):
+        membrane_solver_options("cpu", contact_smoothing=1.5)
+    # both simulators of a sealed sensor (open inflation, then sealed) use the given options
+    options = membrane_solver_options("cpu", contact_smoothing=0.0)
+    sim = make_simulator(sensor, SPHERE, 100.0, closed=True, intrinsics=None, options=options)
+    assert sim.closed and sim.solver.options == options

@@ -508,17 +508,19 @@ def make_simulator(
     batch_size: int = 1,
     friction: float = 0.5,
     intrinsics=None,
+    options=None,
 ) -> MembraneSimulator:
     """The sensor at its pre-contact gas state: inflated to ``gauge_pressure`` [Pa], then either kept
     at that pressure (open) or sealed there (closed: PV = P V of the inflated state, Boyle's law from
-    then on; the thesis's sealed sensor)."""
+    then on; the thesis's sealed sensor). ``options``: FEM solver options (None: the sensor's default,
+    :func:`~defgraspnets.tactile.sensor.membrane_solver_options`)."""
     from defgraspnets.tactile.camera import PICO_FLEXX
     from defgraspnets.tactile.membrane import PVState
 
     intrinsics = PICO_FLEXX if intrinsics is None else intrinsics
     neutral = sensor.cavity_volume + sensor.dimensions.housing_volume
     gas = PVState(ATMOSPHERIC_PRESSURE + gauge_pressure, neutral)
-    common = dict(batch_size=batch_size, friction=friction, intrinsics=intrinsics)
+    common = dict(batch_size=batch_size, friction=friction, intrinsics=intrinsics, options=options)
     sim = MembraneSimulator(sensor, indenter, gas, closed=False, **common)
     if not closed:
         return sim
@@ -547,6 +549,7 @@ def generate_tactile_dataset(
     progress: bool = True,
     repeats: int = 1,
     perturbation: ForearmPerturbation | Mapping | None = None,
+    solver_options=None,
 ) -> dict:
     """Generate (or resume) one shard of the ``"poke"`` or ``"forearm"`` dataset of thesis §3.3.
 
@@ -563,6 +566,8 @@ def generate_tactile_dataset(
         repeats: passes over the forearm grid (thesis: 5, the original and 4 repeats); repeats 1, 2, ...
             re-place the forearm by ``perturbation`` (:class:`ForearmPerturbation` or its config
             mapping; None = its defaults). Poking has no repeats (``repeats`` must be 1).
+        solver_options: FEM :class:`~defgraspnets.fem.SolverOptions` of the sensor (None: its default,
+            :func:`~defgraspnets.tactile.sensor.membrane_solver_options`).
 
     Returns:
         counts of :func:`generate_tactile_shard` plus ``path`` and ``seconds``.
@@ -606,7 +611,9 @@ def generate_tactile_dataset(
         paths = forearm_paths(dict(enumerate(grid)), indenter, sensor, repeats, perturbation, len(grid))
     paths = select_paths(paths, stride, limit, shard_index, shard_count)
     t0 = time.perf_counter()
-    sim = make_simulator(sensor, indenter, gauge_pressure, closed, batch_size, friction, intrinsics)
+    sim = make_simulator(
+        sensor, indenter, gauge_pressure, closed, batch_size, friction, intrinsics, solver_options
+    )
     out_path.parent.mkdir(parents=True, exist_ok=True)
     writer = TactileShardWriter(
         out_path,

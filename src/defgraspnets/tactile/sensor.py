@@ -53,7 +53,7 @@ is the indenter's contact wrench with the opposite sign, independent of the gas 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -83,8 +83,10 @@ def exact_linear_solver(device) -> str:
     return "dense" if wp.get_device(device).is_cuda else "direct"
 
 
-def membrane_solver_options(device=None) -> fem.SolverOptions:
-    """The FEM options of :class:`MembraneSimulator` on ``device``.
+def membrane_solver_options(device=None, **overrides) -> fem.SolverOptions:
+    """The FEM options of :class:`MembraneSimulator` on ``device``; ``overrides`` replace any
+    :class:`~defgraspnets.fem.SolverOptions` field (None: keep the default), checked as SolverOptions
+    checks them.
 
     - the exact linear solver of the device (:func:`exact_linear_solver`);
     - rtol 1e-5: where the indenter dimples the membrane, compressed elements get a PSD-projected
@@ -98,7 +100,13 @@ def membrane_solver_options(device=None) -> fem.SolverOptions:
       forces moved by a median 0.14 % (90th percentile 0.34 %), except 3 of 164 readings of pokes
       tilted 50-80 degrees, whose sphere slides: by 0.4-0.7 N of 1.9-4.4 N (another friction path).
     """
-    return fem.SolverOptions(linear_solver=exact_linear_solver(device), rtol=1e-5, contact_smoothing=1e-2)
+    options = {"linear_solver": exact_linear_solver(device), "rtol": 1e-5, "contact_smoothing": 1e-2}
+    known = {f.name for f in fields(fem.SolverOptions)}
+    unknown = sorted(set(overrides) - known)
+    if unknown:
+        raise TypeError(f"unknown FEM solver option(s) {unknown}; SolverOptions has {sorted(known)}")
+    options.update({k: v for k, v in overrides.items() if v is not None})
+    return fem.SolverOptions(**options)
 
 
 __all__ = [
