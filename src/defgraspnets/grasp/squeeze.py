@@ -88,6 +88,12 @@ def squeeze_solver_options(**overrides) -> fem.SolverOptions:
     (0.08-0.19 mm of 1.5-2.8 mm) at 200 kPa and, for 4 of 8 tilted grasps at 20 kPa, to another
     equilibrium (up to 65 %). Data sets keep the unregularised friction.
 
+    A wider onset (1e-2 h, the tactile sensor's default) does not free the stalled soft grasps either:
+    box grasps 16-23 at 20 kPa (CPU, "direct", 0-15 N in 50 steps) converge 6 of 8 both ways, grasps 16
+    and 17 failing at step 17 instead of 18; it cuts the converged grasps' Newton iterations 4237 -> 3484
+    (final displacements within 0.37 % of the largest). Not yet checked at 200 kPa or on the GPU, so the
+    data path keeps 1e-3.
+
     A failed load increment is retried with the friction normal forces re-lagged at every Newton iteration
     (``relag_friction_on_retry``). Where the pads first touch a few vertices of a stiff curved fTetWild mesh,
     those vertices' normal forces change much within an increment and the frozen lags' re-lag cycles never
