@@ -74,6 +74,7 @@ __all__ = [
     "TactilePath",
     "forearm_paths",
     "generate_tactile_dataset",
+    "generate_tactile_from_config",
     "generate_tactile_shard",
     "make_simulator",
     "poke_paths",
@@ -626,3 +627,47 @@ def generate_tactile_dataset(
     writer.finalize()
     counts.update(path=str(out_path), seconds=time.perf_counter() - t0)
     return counts
+
+
+def generate_tactile_from_config(cfg: Mapping, out_path=None, config_text: str = "") -> dict:
+    """Build the sensor, indenter and solver options of a ``datagen/tactile`` config (a plain mapping:
+    ``dataset``, ``membrane``, ``gas``, ``friction``, ``solver``, ``indenter`` / ``forearm``, the path
+    selection, batching and camera keys; configs/datagen/tactile.yaml) and generate its shard
+    (:func:`generate_tactile_dataset`) at ``out_path`` (None: ``out_dir/<dataset>/<shard_name>.h5``),
+    on Warp's current device. Shared by ``datagen/tactile.py`` and ``scripts/benchmark_tactile.py``."""
+    from pathlib import Path
+
+    from defgraspnets.tactile.camera import PICO_FLEXX
+    from defgraspnets.tactile.membrane import build_membrane
+    from defgraspnets.tactile.sensor import membrane_solver_options
+
+    solver_options = membrane_solver_options(cfg["device"], **dict(cfg["solver"]))
+    sensor = build_membrane(cap_divisions=cfg["membrane"]["cap_divisions"], layers=cfg["membrane"]["layers"])
+    if cfg["dataset"] == "poke":
+        indenter = SphereIndenter(radius=cfg["indenter"]["radius"])
+    else:
+        indenter = CapsuleIndenter(radius=cfg["forearm"]["radius"], length=cfg["forearm"]["length"])
+    if out_path is None:
+        out_path = Path(cfg["out_dir"]) / cfg["dataset"] / f"{cfg['shard_name']}.h5"
+    return generate_tactile_dataset(
+        cfg["dataset"],
+        out_path,
+        sensor,
+        indenter,
+        gauge_pressure=cfg["gas"]["gauge_pressure"],
+        closed=cfg["gas"]["closed"],
+        friction=cfg["friction"],
+        batch_size=cfg["batch_size"],
+        stride=cfg["stride"],
+        limit=cfg["limit"],
+        shard_index=cfg["shard_index"],
+        shard_count=cfg["shard_count"],
+        max_step=cfg["max_step"],
+        intrinsics=PICO_FLEXX.scaled(cfg["camera_scale"]),
+        store_points=cfg["store_points"],
+        config_text=config_text,
+        progress=cfg["progress"],
+        repeats=cfg["repeats"],
+        perturbation=dict(cfg["perturbation"]),
+        solver_options=solver_options,
+    )
