@@ -74,7 +74,8 @@ def main(cfg: DictConfig) -> None:
         "extrapolated_grid_minutes": round(per_state * grid / 60, 2),
         "goal_minutes": GOAL_MINUTES.get(cfg.dataset),
     }
-    out = Path(cfg.out)
+    kind = "cuda" if device.startswith("cuda") else "cpu"
+    out = Path(cfg.out or Path(cfg.paths.root_dir) / "benchmarks" / f"tactile_{cfg.dataset}_{kind}.json")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(record, indent=1))
     print(
