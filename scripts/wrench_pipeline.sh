@@ -26,13 +26,13 @@ cd "$(dirname "$0")/.."
 phase=${1:?generate, generate-gpu or train}
 REPEATS=${REPEATS:-1}
 
-run_shards() {  # dataset shard_count worker workers deadline
-    local dataset=$1 count=$2 worker=$3 workers=$4 deadline=$5 i left extra=()
-    [[ $dataset == forearm ]] && extra=(repeats="$REPEATS")
+run_shards() {  # dataset shard_count worker workers deadline stride [datagen overrides...]
+    local dataset=$1 count=$2 worker=$3 workers=$4 deadline=$5 stride=$6 i left extra=("${@:7}")
+    [[ $dataset == forearm ]] && extra+=(repeats="$REPEATS")
     for ((i = worker; i < count; i += workers)); do
         left=$((deadline - $(date +%s)))
         ((left > 10)) || break
-        timeout "$left" python datagen/tactile.py dataset="$dataset" stride=1 limit=null \
+        timeout "$left" python datagen/tactile.py dataset="$dataset" stride="$stride" limit=null \
             shard_count="$count" shard_index="$i" shard_name="$(printf 'shard_%03d' "$i")" ${extra[@]+"${extra[@]}"} \
             progress=false hydra.run.dir="logs/datagen_tactile/$dataset/$(printf '%03d' "$i")" || break
     done
@@ -43,8 +43,8 @@ if [[ $phase == generate ]]; then
     poke_workers=${3:-12}
     forearm_workers=${4:-4}
     deadline=$(($(date +%s) + budget))
-    for ((w = 0; w < poke_workers; w++)); do run_shards poke 200 "$w" "$poke_workers" "$deadline" & done
-    for ((w = 0; w < forearm_workers; w++)); do run_shards forearm 40 "$w" "$forearm_workers" "$deadline" & done
+    for ((w = 0; w < poke_workers; w++)); do run_shards poke 200 "$w" "$poke_workers" "$deadline" 1 & done
+    for ((w = 0; w < forearm_workers; w++)); do run_shards forearm 40 "$w" "$forearm_workers" "$deadline" 1 & done
     wait
     for d in poke forearm; do
         echo "$d: $(ls data/tactile/$d/*.h5 2>/dev/null | wc -l) finished shards"
@@ -55,14 +55,7 @@ elif [[ $phase == generate-gpu ]]; then
     stride=${3:?stride}
     count=${4:?shard count}
     deadline=$(($(date +%s) + ${5:-86400}))
-    for ((i = 0; i < count; i++)); do
-        left=$((deadline - $(date +%s)))
-        ((left > 10)) || break
-        timeout "$left" python datagen/tactile.py dataset="$dataset" device=cuda batch_size="${BATCH:-64}" \
-            stride="$stride" limit=null shard_count="$count" shard_index="$i" \
-            shard_name="$(printf 'shard_%03d' "$i")" repeats="$REPEATS" progress=false \
-            hydra.run.dir="logs/datagen_tactile/$dataset/$(printf '%03d' "$i")" || break
-    done
+    run_shards "$dataset" "$count" 0 1 "$deadline" "$stride" device=cuda batch_size="${BATCH:-64}"
     grep -h "samples," logs/datagen_tactile/"$dataset"/*/*.log 2>/dev/null | sed 's/.*INFO\] - //'
 elif [[ $phase == train ]]; then
     budget=${2:?seconds}
