@@ -27,18 +27,16 @@ GOAL_MINUTES = {"poke": 10.0}  # issue goal: the 10,000 poking states on one H10
 
 @hydra.main(version_base="1.3", config_path="../configs", config_name="benchmark_tactile")
 def main(cfg: DictConfig) -> None:
-    import dataclasses
-
     import warp as wp
 
     from defgraspnets.eval.machine import machine_info
     from defgraspnets.tactile.datasets import generate_tactile_from_config
     from defgraspnets.tactile.indenters import forearm_grid, poke_grid
-    from defgraspnets.tactile.sensor import membrane_solver_options
 
     if cfg.device is not None:
         wp.set_device(cfg.device)
     device = str(wp.get_device())
+    kind = "cuda" if device.startswith("cuda") else "cpu"
     config = OmegaConf.to_container(cfg, resolve=True)
     with tempfile.TemporaryDirectory() as tmp:
         counts = generate_tactile_from_config(config, out_path=Path(tmp) / "shard.h5")
@@ -47,20 +45,16 @@ def main(cfg: DictConfig) -> None:
         raise ValueError(f"no states were simulated (stride={cfg.stride}, limit={cfg.limit})")
     grid = len(poke_grid()) if cfg.dataset == "poke" else len(forearm_grid()) * cfg.repeats
     per_state = counts["seconds"] / states
-    options = membrane_solver_options(cfg.device, **config["solver"])
+    options = counts["solver_options"]
     record = {
         "benchmark": "tactile_datagen",
-        "machine": machine_info(device if device.startswith("cuda") else "cpu"),
+        "machine": machine_info(device if kind == "cuda" else "cpu"),
         "device": device,
         "dataset": cfg.dataset,
         "membrane": dict(config["membrane"]),
         "indenter": dict(config["indenter"] if cfg.dataset == "poke" else config["forearm"]),
         "gas": dict(config["gas"]),
-        "solver": {
-            k: v
-            for k, v in dataclasses.asdict(options).items()
-            if k in ("linear_solver", "rtol", "contact_smoothing")
-        },
+        "solver": {k: getattr(options, k) for k in ("linear_solver", "rtol", "contact_smoothing")},
         "selection": {"stride": cfg.stride, "limit": cfg.limit, "batch_size": cfg.batch_size},
         "timing": "generate_tactile_from_config end to end: simulator build and inflation, solves, "
         "rendering, shard writing",
@@ -74,7 +68,6 @@ def main(cfg: DictConfig) -> None:
         "extrapolated_grid_minutes": round(per_state * grid / 60, 2),
         "goal_minutes": GOAL_MINUTES.get(cfg.dataset),
     }
-    kind = "cuda" if device.startswith("cuda") else "cpu"
     out = Path(cfg.out or Path(cfg.paths.root_dir) / "benchmarks" / f"tactile_{cfg.dataset}_{kind}.json")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(record, indent=1))

@@ -571,7 +571,8 @@ def generate_tactile_dataset(
             :func:`~defgraspnets.tactile.sensor.membrane_solver_options`).
 
     Returns:
-        counts of :func:`generate_tactile_shard` plus ``path`` and ``seconds``.
+        counts of :func:`generate_tactile_shard` plus ``path``, ``seconds`` and the simulator's
+        ``solver_options`` (absent when the shard was already finished).
 
     Raises:
         ValueError: unknown experiment, ``repeats`` < 1 (or > 1 for poking), a bad perturbation
@@ -625,7 +626,7 @@ def generate_tactile_dataset(
     )
     counts = generate_tactile_shard(sim, paths, writer, max_step=max_step, progress=progress)
     writer.finalize()
-    counts.update(path=str(out_path), seconds=time.perf_counter() - t0)
+    counts.update(path=str(out_path), seconds=time.perf_counter() - t0, solver_options=sim.solver.options)
     return counts
 
 
