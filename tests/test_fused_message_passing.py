@@ -93,6 +93,30 @@ def test_fused_edge_update_gives_the_updated_latents_and_the_sums_per_target():
 
 
 @needs_kernels
+def test_messages_are_summed_by_target_across_tiles_and_around_masked_edges():
+    """Edges ordered by target (as ``graph.directed`` makes them): long runs of one target that span tiles
+    (64 edges), masked edges inside a run, and the same target again in a later tile all sum as
+    ``index_add``; so do the gradients of the node latents."""
+    g = torch.Generator().manual_seed(3)
+    targets = torch.cat([torch.full((150,), 4), torch.arange(10).repeat_interleave(7), torch.full((20,), 4)])
+    index = torch.stack([torch.randint(0, 12, (len(targets),), generator=g), targets])
+    mask = torch.rand(len(targets), generator=g) > 0.25
+    mlp = _perturbed(EdgeMLP(16, 2))
+    edge = torch.randn(len(targets), 16, generator=g)
+    node = torch.randn(12, 16, generator=g, requires_grad=True)
+    message = mlp(edge, node, index) * mask[:, None]
+    expected = torch.zeros(12, 16).index_add(0, index[1], message)
+    for p in mlp.parameters():
+        p.requires_grad_(False)
+    _, sums = fe.fused_edge_update(mlp, edge, node, index, mask)
+    torch.testing.assert_close(sums, expected.detach(), rtol=1e-5, atol=1e-5)
+    weights = torch.randn(12, 16, generator=g)
+    (grad_ref,) = torch.autograd.grad((expected * weights).sum(), node)
+    (grad,) = torch.autograd.grad((sums * weights).sum(), node)
+    torch.testing.assert_close(grad, grad_ref, rtol=1e-4, atol=1e-4 * float(grad_ref.abs().max()))
+
+
+@needs_kernels
 def test_trainable_weights_keep_the_op_by_op_blocks_in_passes_with_gradients(monkeypatch):
     """Training (weights that require gradients) never calls a kernel; the fused forward still serves its
     passes without gradients; calling a fused update directly with trainable weights is a clear error."""

@@ -19,6 +19,7 @@ from defgraspnets.models.graph import (
     build_grasp_batch,
     build_grasp_graph,
     contact_pairs,
+    directed,
     unique_edges,
 )
 
@@ -26,6 +27,20 @@ from defgraspnets.models.graph import (
 def _brute(a: np.ndarray, b: np.ndarray, r: float) -> set:
     d = np.linalg.norm(a[:, None] - b[None], axis=-1)
     return {(int(i), int(j)) for i, j in np.argwhere(d < r)}
+
+
+def test_directed_edges_are_both_directions_ordered_by_target():
+    tets = np.array([[0, 1, 2, 3], [1, 2, 3, 4]])
+    undirected = unique_edges(tets)
+    e = directed(undirected).numpy()
+    assert e.shape == (2, 2 * len(undirected))
+    # every undirected edge in both directions, each directed edge once
+    both_ways = [(i, j) for i, j in undirected] + [(j, i) for i, j in undirected]
+    assert sorted(map(tuple, e.T)) == sorted(both_ways)
+    # ordered by target, then source: a node's incoming edges are contiguous
+    key = e[1] * 10 + e[0]
+    assert np.all(np.diff(key) > 0)
+    assert directed(np.zeros((0, 2), dtype=np.int64)).shape == (2, 0)
 
 
 @pytest.mark.parametrize("backend", ["kdtree", "torch"])

