@@ -15,7 +15,8 @@ Scoring is timed end to end (finger joint states, multigraph, forward pass, obje
     network     encode-process-decode forward and output scaling
     objective   Q and feasibility
 
-Refinement runs once after a warm-up (all grasps, one step, when compiling; else two grasps), with the timer
+Refinement runs once after a warm-up (when compiling, a whole refinement with another annealing seed, which
+compiles every padded batch size; else two grasps, one step), with the timer
 on: ``refine_stages`` holds the same stages summed over the run plus ``refine.gradient`` (forward passes with
 autograd), ``refine.backward``, ``refine.trial`` (line-search forward passes without gradients, and the
 initial evaluation) and ``refine.collisions``, each with its calls and seconds per call, and the numbers of
@@ -45,6 +46,8 @@ PREDICTOR_OPTIONS = (
     "share_object",
     "fused_message_passing",
 )
+PLANNER_OPTIONS = ("pad_levels",)  # GraspPlanner
+REFINE_OPTIONS = ("reuse_rejected",)  # GraspPlanner.refine
 
 
 def _network(cfg):
@@ -56,7 +59,7 @@ def _network(cfg):
         from defgraspnets.models.defgraspnets_module import DefGraspNetsModule
 
         module = DefGraspNetsModule.load_from_checkpoint(cfg.ckpt_path, map_location="cpu")
-        return module.net, module.contact_radius_m, "checkpoint"
+        return module.net, module.contact_radius_m, f"checkpoint {Path(cfg.ckpt_path).name}"
     torch.manual_seed(0)
     net = DefGraspNet(latent=cfg.latent, num_blocks=cfg.num_blocks, hidden_layers=cfg.hidden_layers)
     for norm in net.normalizers:  # placeholder statistics: timing only
@@ -146,7 +149,15 @@ def main(cfg: DictConfig) -> None:
             continue
         options = {k: v[k] for k in PREDICTOR_OPTIONS if k in v}
         predictor = DefGraspNetsPredictor(copy.deepcopy(net), radius, device=dev, **options)
-        planner = GraspPlanner(predictor, mesh, cfg.youngs_modulus, PRESETS["min_max_stress"], cfg.force)
+        planner = GraspPlanner(
+            predictor,
+            mesh,
+            cfg.youngs_modulus,
+            PRESETS["min_max_stress"],
+            cfg.force,
+            **{k: v[k] for k in PLANNER_OPTIONS if k in v},
+        )
+        refine_options = {k: v[k] for k in REFINE_OPTIONS if k in v}
         row = {
             "name": v["name"],
             **v,
@@ -183,9 +194,11 @@ def main(cfg: DictConfig) -> None:
         )
         print(f"{v['name']}: score stages [ms]: {split}")
         if cfg.refine:
-            warm = grasps.poses if v.get("compile") else grasps.poses[:2]
             t = time.perf_counter()
-            planner.refine(warm, steps=1)  # warm-up of the backward pass (compilation)
+            if v.get("compile"):  # warm-up: compiles every batch size the refinement pads to
+                planner.refine(grasps.poses, steps=cfg.refine_steps, seed=1, **refine_options)
+            else:  # warm-up of the backward pass
+                planner.refine(grasps.poses[:2], steps=1, **refine_options)
             sync()
             row["refine_warmup_s"] = time.perf_counter() - t
             compiles.mark("refine_warmup")
@@ -195,7 +208,7 @@ def main(cfg: DictConfig) -> None:
             planner.timer = timer
             sync()
             try:
-                r = planner.refine(grasps.poses, steps=cfg.refine_steps)
+                r = planner.refine(grasps.poses, steps=cfg.refine_steps, **refine_options)
                 sync()
                 row["refine_s"] = r.seconds
                 row["refine_accepted_steps"] = int((r.accepted > 0).sum())

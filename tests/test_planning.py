@@ -33,6 +33,7 @@ from defgraspnets.planning import (
     smooth_max,
     threshold_hits,
 )
+from defgraspnets.planning.timing import StageTimer
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -236,6 +237,31 @@ def test_dense_geometry_gives_the_same_refinement(predictor64, box, grasps):
     ]
     for key in ("poses", "q", "closing_distance", "q_history", "accepted"):
         np.testing.assert_allclose(getattr(results[1], key), getattr(results[0], key), rtol=1e-12, atol=1e-15)
+
+
+def test_reusing_rejected_grasps_refines_identically_with_fewer_evaluations(predictor64, box, grasps):
+    """A grasp whose pose did not change since its rejection skips the gradient and line search (the network
+    is deterministic): the same refinement as re-evaluating every grasp, with fewer grasps evaluated."""
+    planner = GraspPlanner(predictor64, box, 2e5, PRESETS["min_max_stress"])
+    kw = {"steps": 5, "step_size": 0.5, "max_backtracks": 1, "temperature": 0.003}  # many rejections
+    runs, counts = {}, {}
+    for reuse in (True, False):
+        planner.timer = timer = StageTimer("cpu")
+        runs[reuse] = planner.refine(grasps.poses[:6], reuse_rejected=reuse, **kw)
+        counts[reuse] = dict(timer.counts)
+    planner.timer = None
+    r, ref = runs[True], runs[False]
+    np.testing.assert_array_equal(r.accepted, ref.accepted)
+    for key in ("poses", "q", "closing_distance", "q_history"):
+        np.testing.assert_allclose(getattr(r, key), getattr(ref, key), rtol=1e-12, atol=1e-15)
+    # the settings exercise both paths: rejected twice in a row (skipped), and a rejection followed by an
+    # annealing step on the stored trial
+    rejected = r.accepted[:-1] == 0
+    assert (rejected & (r.accepted[1:] == 0)).any() and (rejected & (r.accepted[1:] == 2)).any()
+    G, steps = r.accepted.shape[1], len(r.accepted)
+    assert counts[False]["refine.gradient_grasps"] == steps * G
+    assert counts[True]["refine.gradient_grasps"] == steps * G - np.count_nonzero(rejected)
+    assert counts[True]["refine.trial_grasps"] < counts[False]["refine.trial_grasps"]
 
 
 def test_planner_rejects_bad_input(predictor64, box, grasps):

@@ -27,10 +27,17 @@ accelerator a dense separating-axis and winding-number test of every collision b
 triangle, on the device). Each grasp returns the best feasible pose it visited, so refinement never returns a
 worse grasp than it was given.
 
+The network is deterministic, so a grasp whose pose did not change in a step (rejected, or not movable) would
+repeat its gradient and line search exactly in the next one: with ``reuse_rejected`` it skips both, keeps its
+last shortest trial for the annealing draw, and the annealing random numbers are drawn for all G grasps every
+step, so the result is that of re-evaluating everything, with fewer forward passes.
+
 The gradient is taken w.r.t. the pose coordinates only (``backward(inputs=xi)``: no weight gradients of the
-network). With ``pad_trials`` (default: the predictor's ``static_shapes``) the line-search batches of the
-still-pending grasps are padded to the full batch, so that every forward pass has the same shapes (no
-recompilation under ``torch.compile``). ``timer`` (:mod:`.timing`) times the stages of each evaluation.
+network). With ``pad_trials`` (default: the predictor's ``static_shapes``) the gradient and line-search
+batches of the grasps still being refined are padded to the smallest of G, G/2, G/4, ... (``pad_levels``
+sizes) that holds them, so that the forward passes see a few fixed shapes (few compilations under
+``torch.compile``) and a line-search round of 30 pending grasps out of 100 costs a pass of 50, not of 100.
+``timer`` (:mod:`.timing`) times the stages of each evaluation.
 """
 
 from __future__ import annotations
@@ -209,6 +216,8 @@ class GraspPlanner:
         pad_trials: pad every forward batch to a fixed size (the refinement batch, or ``batch_size``) with
             copies of its first pose, whose results are dropped (static shapes for ``torch.compile``).
             None: the predictor's ``static_shapes``.
+        pad_levels: with ``pad_trials``, the refinement pads the batches of a step's still-pending grasps
+            to the smallest of G, G/2, ..., G/2^(pad_levels - 1) that holds them (1: always G).
         dense_geometry: finger joint states and collision checks as dense tensor math on the predictor's
             device (no host round trips; see :class:`SurfaceClosingDistances`), or with the elements near
             the gripper selected on the host (NumPy collision checks), which is faster on a CPU. None: dense
@@ -227,6 +236,7 @@ class GraspPlanner:
         batch_size: int | None = None,
         check_collisions: bool = True,
         pad_trials: bool | None = None,
+        pad_levels: int = 3,
         dense_geometry: bool | None = None,
     ):
         if not isinstance(mesh, TetMesh):
@@ -246,7 +256,10 @@ class GraspPlanner:
         self.closing_temperature = closing_temperature
         self.batch_size = batch_size
         self.check_collisions = check_collisions
+        if int(pad_levels) != pad_levels or pad_levels < 1:
+            raise ValueError(f"pad_levels must be an integer >= 1, got {pad_levels!r}")
         self.pad_trials = predictor.static_shapes if pad_trials is None else bool(pad_trials)
+        self.pad_levels = int(pad_levels)
         self.fingers = gripper_finger_geometry(gripper)
         self.template = predictor.object_template(mesh)
         # the object's surface (vertices renumbered) for the finger joint states
@@ -388,6 +401,17 @@ class GraspPlanner:
             return self._collisions(T)
         return torch.as_tensor(self.collides(T), device=self.device)
 
+    def _padded_size(self, n: int, full: int) -> int:
+        """Batch size a padded pass over ``n`` of ``full`` grasps uses: the smallest of full, full / 2, ...
+        (``pad_levels`` sizes, halves rounded up) that holds ``n``."""
+        size = full
+        for _ in range(self.pad_levels - 1):
+            half = -(-size // 2)
+            if n > half:
+                break
+            size = half
+        return size
+
     # ------------------------------------------------------------------ sampling mode
     @torch.no_grad()
     def score(self, poses) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -412,6 +436,7 @@ class GraspPlanner:
         temperature_decay: float = 0.7,
         seed: int | None = 0,
         progress: bool = False,
+        reuse_rejected: bool = True,
     ) -> RefinementResult:
         """Refine G grasp poses (G, 4, 4) together (see the module docstring).
 
@@ -422,6 +447,9 @@ class GraspPlanner:
             max_backtracks: halvings of the step per iteration. armijo: sufficient-decrease constant c.
             temperature, temperature_decay: annealing theta_0 (relative to |L| of the input) and its decay
                 per step (0 disables annealing). seed: random stream of the annealing acceptances.
+            reuse_rejected: skip the gradient and line search of a grasp whose pose did not change since its
+                last rejection; the network is deterministic, so the result is the same, with fewer forward
+                passes.
         """
         t0 = time.perf_counter()
         sense = sense or self.objective.sense
@@ -458,30 +486,43 @@ class GraspPlanner:
             from tqdm.auto import tqdm
 
             it = tqdm(it, desc=f"refine {G} grasps", unit="step", leave=False)
+        # grasps whose pose did not change in the last step (rejected or not movable): their gradient and
+        # line search would repeat exactly, so only the annealing draw is redone, on the stored shortest trial
+        unchanged = torch.zeros(G, dtype=torch.bool, device=self.device)
+        movable = torch.zeros(G, dtype=torch.bool, device=self.device)
+        has_trial = torch.zeros(G, dtype=torch.bool, device=self.device)
+        trial_T, trial_q = T.clone(), torch.zeros_like(q_now)
+        trial_loss, trial_ok = torch.zeros_like(q_now), torch.zeros_like(ok_now)
         for k in it:
-            xi = torch.zeros(G, 6, dtype=self.dtype, device=self.device, requires_grad=True)
-            with stage("refine.gradient"):
-                ev = self._evaluate(perturb_pose(T, xi * scale), grad=True)
-            timer.count("refine.gradient_grasps", G)
-            with stage("refine.backward"):
-                # d/dxi only: no weight gradients of the network
-                (sign * ev.q).sum().backward(inputs=[xi])
-            g = xi.grad.detach()
-            del ev
+            fresh = torch.nonzero(~unchanged).squeeze(1)
+            g = torch.zeros(G, 6, dtype=self.dtype, device=self.device)
+            if fresh.numel():
+                xi = torch.zeros(len(fresh), 6, dtype=self.dtype, device=self.device, requires_grad=True)
+                with stage("refine.gradient"):
+                    ev = self._evaluate(
+                        perturb_pose(T[fresh], xi * scale), grad=True, pad_to=self._padded_size(len(fresh), G)
+                    )
+                with stage("refine.backward"):
+                    # d/dxi only: no weight gradients of the network
+                    (sign * ev.q).sum().backward(inputs=[xi])
+                g[fresh] = xi.grad.detach()
+                del ev
+            timer.count("refine.gradient_grasps", len(fresh))
             gnorm = g.norm(dim=1)
-            movable = ok_now & torch.isfinite(gnorm) & (gnorm > 0)
+            movable = torch.where(unchanged, movable, ok_now & torch.isfinite(gnorm) & (gnorm > 0))
             direction = -g / gnorm.clamp_min(torch.finfo(g.dtype).tiny)[:, None]
             alpha = torch.full((G,), step_size, dtype=self.dtype, device=self.device)
             code = torch.zeros(G, dtype=torch.long, device=self.device)
-            pending = movable.clone()
-            last = {}  # grasp -> (pose, q, feasible) of the shortest trial
+            pending = movable & ~unchanged
+            has_trial &= unchanged  # stored trials of the unchanged grasps; this step's trials join below
+            last = {}  # (pose, q, loss, feasible) of the shortest trial of the grasps still pending
             for _ in range(max_backtracks + 1):
                 idx = torch.nonzero(pending).squeeze(1)
                 if idx.numel() == 0:
                     break
                 with torch.no_grad(), stage("refine.trial"):
                     trial = perturb_pose(T[idx], (alpha[idx, None] * direction[idx]) * scale)
-                    tev = self._evaluate(trial, pad_to=G)
+                    tev = self._evaluate(trial, pad_to=self._padded_size(len(idx), G))
                 timer.count("refine.trial_grasps", len(idx))
                 feasible = tev.feasible.clone()
                 if self.check_collisions:
@@ -496,16 +537,24 @@ class GraspPlanner:
                 pending[win] = False
                 last = {"idx": idx, "trial": trial, "q": tev.q.detach(), "loss": t_loss, "feasible": feasible}
                 alpha[idx[~success]] *= 0.5
-            # simulated annealing: the shortest trial of grasps without an Armijo step
-            if temperature > 0 and last:
-                idx, theta = last["idx"], theta0 * temperature_decay**k
-                still = pending[idx] & last["feasible"]
-                rise = (last["loss"] - loss_now[idx]).clamp_min(0.0)
-                u = torch.rand(len(idx), generator=gen, dtype=torch.float64).to(self.device, self.dtype)
-                take = still & (u < torch.exp(-rise / theta))
-                win = idx[take]
-                T[win], q_now[win], loss_now[win] = last["trial"][take], last["q"][take], last["loss"][take]
+            if last:
+                idx = last["idx"]
+                trial_T[idx], trial_q[idx] = last["trial"], last["q"]
+                trial_loss[idx], trial_ok[idx] = last["loss"], last["feasible"]
+                has_trial[idx] = True
+            # simulated annealing: the shortest trial of grasps without an Armijo step (this step's or the
+            # stored one); random numbers for all G grasps, independent of which grasps were evaluated
+            if temperature > 0:
+                theta = theta0 * temperature_decay**k
+                u = torch.rand(G, generator=gen, dtype=torch.float64).to(self.device, self.dtype)
+                rise = (trial_loss - loss_now).clamp_min(0.0)
+                take = has_trial & (code == 0) & trial_ok & (u < torch.exp(-rise / theta))
+                win = torch.nonzero(take).squeeze(1)
+                T[win], q_now[win], loss_now[win] = trial_T[win], trial_q[win], trial_loss[win]
                 code[win] = ANNEALED
+            if reuse_rejected:
+                unchanged = code == 0
+                has_trial &= unchanged
             improved = (code > 0) & (loss_now < best_loss)
             best_T[improved], best_loss[improved], best_q[improved] = (
                 T[improved],
