@@ -43,8 +43,9 @@ def main(cfg: DictConfig) -> None:
     grasps = sample_antipodal_grasps(mesh, num_grasps=cfg.num_grasps, seed=cfg.seed)
     material = fem.Material(cfg.youngs_modulus, cfg.poisson_ratio, cfg.density, model=cfg.material_model)
     overrides = {"linear_solver": cfg.linear_solver, "max_newton_per_solve": cfg.max_newton_per_step}
-    if cfg.max_factor_reuse is not None:
-        overrides["max_factor_reuse"] = cfg.max_factor_reuse
+    for key in ("max_factor_reuse", "contact_smoothing", "relag_friction_on_retry"):
+        if cfg[key] is not None:
+            overrides[key] = cfg[key]
     options = squeeze_solver_options(**overrides)
 
     out = Path(cfg.out)
@@ -79,7 +80,13 @@ def main(cfg: DictConfig) -> None:
         "linear_solver": solver.linear_solver,
         "solver_options": {
             k: getattr(options, k)
-            for k in ("rtol", "contact_stiffness", "contact_smoothing", "max_factor_reuse")
+            for k in (
+                "rtol",
+                "contact_stiffness",
+                "contact_smoothing",
+                "max_factor_reuse",
+                "relag_friction_on_retry",
+            )
             if hasattr(options, k)
         },
         "seconds_cold_first_step": cold,

@@ -34,10 +34,12 @@ def test_benchmark_fem_writes_per_step_and_per_grasp_records(tmp_path):
         "youngs_modulus=1e6",
         "linear_solver=dense",
         "profile_phases=true",
+        "contact_smoothing=0.005",
     )
     assert run.returncode == 0, run.stderr[-2000:]
     record = json.loads((tmp_path / "fem.json").read_text())
     assert record["linear_solver"] == "dense"
+    assert record["solver_options"]["contact_smoothing"] == 0.005  # the override, not the squeeze default
     assert record["completed_steps"] == 3 and len(record["step_seconds"]) == 3
     assert record["object"]["vertices"] == 64 and record["grasps"] == 2
     per_grasp = np.array(record["newton_iterations_per_problem"])

@@ -46,7 +46,7 @@ def test_squeezing_harder_deforms_more(ramp):
 
 
 def test_squeeze_options_and_bad_force():
-    assert squeeze_solver_options().contact_smoothing == pytest.approx(1e-3)
+    assert squeeze_solver_options().contact_smoothing == pytest.approx(1e-2)
     assert squeeze_solver_options().rtol == pytest.approx(1e-5)
     assert squeeze_solver_options(linear_solver="cg").linear_solver == "cg"
     mesh = fem.TetMesh.box(size=SIZE, divisions=(2, 2, 2), origin=-SIZE / 2)
@@ -64,9 +64,12 @@ def test_soft_neohookean_object_holds_15_newtons_without_inverting():
     (whose volume resistance is bounded) inverts tets on the way (measured on this grasp: from 6.9 N)."""
     mesh = fem.TetMesh.box(size=SIZE, divisions=(6, 5, 7), origin=-SIZE / 2)
     grasps = sample_antipodal_grasps(mesh, num_grasps=4, seed=0)[[1]]
-    options = squeeze_solver_options(linear_solver="direct")
     results = {}
     for model, force, steps in (("neohookean", 15.0, 15), ("corotated", 8.4, 12)):
+        # the co-rotated inversion was measured with the 1e-3 h contact onset (with 1e-2 h this grasp's tets
+        # are not yet inverted at 8.4 N)
+        smoothing = {"contact_smoothing": 1e-3} if model == "corotated" else {}
+        options = squeeze_solver_options(linear_solver="direct", **smoothing)
         material = fem.Material(1e4, 0.3, 1000.0, model=model)
         solver = make_squeeze_solver(mesh, grasps, material, friction=0.7, device="cpu", options=options)
         results[model] = squeeze_ramp(solver, max_force=force, steps=steps)
