@@ -367,6 +367,9 @@ def test_newton_budget_flags_a_problem_instead_of_holding_up_the_batch():
         fem.SolverOptions(max_newton_per_solve=-1)
     with pytest.raises(ValueError, match="friction_rtol"):
         fem.SolverOptions(friction_rtol=1.0)
+    for bad in (-1, 1.5, "yes"):
+        with pytest.raises(ValueError, match="relag_friction_on_retry"):
+            fem.SolverOptions(relag_friction_on_retry=bad)
 
 
 def _assert_equilibria_identical(a, b):

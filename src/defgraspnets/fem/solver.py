@@ -106,7 +106,9 @@ class SolverOptions:
         relag_friction_on_retry: a load increment that failed is retried (halved) with the friction normal
             forces re-lagged at every Newton iteration, never frozen (a converged state is then consistent
             with its own normal forces by construction): where a few contact vertices carry the load (the
-            pads on a stiff curved fTetWild mesh), frozen lags and their re-lag cycles never settle.
+            pads on a stiff curved fTetWild mesh), frozen lags and their re-lag cycles never settle. True
+            (or 1): from the first failed attempt of a load step on; an integer k: from the k-th on (the
+            earlier retries keep the frozen lags); False (or 0): never.
         friction_rtol: a converged state is consistent with its lagged normal forces when every contact's
             friction capacity error ``mu (|N - N_lag| + N |n - n_lag|)`` is below the residual tolerance
             (default, ``friction_rtol = 0``: Coulomb holds per contact to the Newton tolerance), or when
@@ -190,7 +192,7 @@ class SolverOptions:
     max_step_fraction: float = 0.1
     friction_relag_iterations: int = 4
     max_friction_relags: int = 8
-    relag_friction_on_retry: bool = False
+    relag_friction_on_retry: bool | int = False
     friction_rtol: float = 0.0
     friction_relaxation: bool = True
     max_newton_per_solve: int = 0
@@ -229,6 +231,12 @@ class SolverOptions:
             )
         if not 0 <= self.friction_rtol < 1:
             raise ValueError(f"SolverOptions.friction_rtol must be in [0, 1), got {self.friction_rtol!r}")
+        relag = self.relag_friction_on_retry
+        if not isinstance(relag, (bool, int, np.integer)) or relag < 0:
+            raise ValueError(
+                "SolverOptions.relag_friction_on_retry must be a bool or the failed attempt (>= 1) from "
+                f"which on an increment is retried with re-lagged friction, got {relag!r}"
+            )
         for name in ("contact_stiffness", "rtol", "cg_rtol", "max_step_fraction", "escape_fraction"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"SolverOptions.{name} must be > 0, got {getattr(self, name)!r}")
@@ -1360,8 +1368,8 @@ class QuasiStaticSolver:
                 todo &= ~giveup
                 retry = bad & ~giveup
                 lam_try[retry] = 0.5 * (lam_done[retry] + lam_try[retry])
-                if o.relag_friction_on_retry:
-                    relag_every |= retry
+                if o.relag_friction_on_retry:  # from the k-th failed attempt of the step on (True: k = 1)
+                    relag_every |= retry & (bisections >= int(o.relag_friction_on_retry))
             if o.max_newton_per_solve:
                 spent = todo & (newton_total >= o.max_newton_per_solve)
                 for b in np.nonzero(spent)[0]:
