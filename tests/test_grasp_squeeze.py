@@ -168,3 +168,41 @@ def test_squeeze_of_a_stiff_curved_ftetwild_mesh_converges_with_coulomb_friction
         tangential = np.linalg.norm(eq.contact_friction_force[name], axis=-1)
         assert np.all(tangential <= mu * normal * (1 + 1e-9) + 1e-12)
         assert normal.sum(axis=1) == pytest.approx(7.5, rel=1e-4)  # each pad presses with F_g / 2
+
+
+@pytest.mark.parametrize("first_attempt", [1, 2])
+def test_friction_is_relagged_from_the_kth_failed_attempt_of_a_load_step(first_attempt):
+    """``relag_friction_on_retry = k``: within a load step, a problem's Newton attempts re-lag the friction
+    at every iteration exactly once it has failed k attempts (the data path uses k = 2); traced on the stiff
+    fTetWild cone, whose first contacts make increments fail."""
+    from pathlib import Path
+
+    mesh = fem.TetMesh.load(Path(__file__).parent / "data" / "cone_rb25_rt10_h60_ftetwild.vtu")
+    grasps = sample_antipodal_grasps(mesh, num_grasps=12, seed=0)[[0, 10]]  # #10 fails increments repeatedly
+    options = squeeze_solver_options(linear_solver="dense", relag_friction_on_retry=first_attempt)
+    material = fem.Material(1e7, 0.3, 1000.0, model="neohookean")
+    solver = make_squeeze_solver(mesh, grasps, material, 0.7, device="cpu", options=options)
+    events, newton, solve = [], solver._newton, solver.solve
+
+    def spy_newton(mask, relag_every):
+        out = newton(mask, relag_every)
+        events.append((mask.copy(), relag_every.copy(), np.asarray(out[0]).copy()))
+        return out
+
+    def spy_solve(*args, **kwargs):
+        events.append(None)  # a new load step: its failure counts start at zero
+        return solve(*args, **kwargs)
+
+    solver._newton, solver.solve = spy_newton, spy_solve
+    squeeze_ramp(solver, 15.0, 3)
+    relagged = 0
+    for event in events:
+        if event is None:
+            failed = np.zeros(len(grasps), dtype=int)
+            continue
+        mask, relag, ok = event
+        for b in np.flatnonzero(mask):
+            assert relag[b] == (failed[b] >= first_attempt)
+            relagged += int(relag[b])
+            failed[b] += int(not ok[b])
+    assert relagged > 0  # attempts failed often enough for the re-lag to start
