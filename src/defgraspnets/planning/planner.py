@@ -514,8 +514,7 @@ class GraspPlanner:
             alpha = torch.full((G,), step_size, dtype=self.dtype, device=self.device)
             code = torch.zeros(G, dtype=torch.long, device=self.device)
             pending = movable & ~unchanged
-            has_trial &= unchanged  # stored trials of the unchanged grasps; this step's trials join below
-            last = {}  # (pose, q, loss, feasible) of the shortest trial of the grasps still pending
+            has_trial &= unchanged  # stored trials of the unchanged grasps; this step's failed trials join
             for _ in range(max_backtracks + 1):
                 idx = torch.nonzero(pending).squeeze(1)
                 if idx.numel() == 0:
@@ -535,13 +534,11 @@ class GraspPlanner:
                 T[win], q_now[win], loss_now[win] = trial[success], tev.q.detach()[success], t_loss[success]
                 code[win] = ARMIJO
                 pending[win] = False
-                last = {"idx": idx, "trial": trial, "q": tev.q.detach(), "loss": t_loss, "feasible": feasible}
-                alpha[idx[~success]] *= 0.5
-            if last:
-                idx = last["idx"]
-                trial_T[idx], trial_q[idx] = last["trial"], last["q"]
-                trial_loss[idx], trial_ok[idx] = last["loss"], last["feasible"]
-                has_trial[idx] = True
+                # each failed trial replaces the grasp's stored one: the shortest remains
+                lose, fail = idx[~success], ~success
+                trial_T[lose], trial_q[lose] = trial[fail], tev.q.detach()[fail]
+                trial_loss[lose], trial_ok[lose], has_trial[lose] = t_loss[fail], feasible[fail], True
+                alpha[lose] *= 0.5
             # simulated annealing: the shortest trial of grasps without an Armijo step (this step's or the
             # stored one); random numbers for all G grasps, independent of which grasps were evaluated
             if temperature > 0:
@@ -554,7 +551,6 @@ class GraspPlanner:
                 code[win] = ANNEALED
             if reuse_rejected:
                 unchanged = code == 0
-                has_trial &= unchanged
             improved = (code > 0) & (loss_now < best_loss)
             best_T[improved], best_loss[improved], best_q[improved] = (
                 T[improved],
