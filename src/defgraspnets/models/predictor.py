@@ -22,8 +22,9 @@ in fp32, 76 ms with ``compile=True``, 49 ms with ``precision="bf16", compile=Tru
 stress within ~2.5 % of fp32). A 4096-vertex object: 669 ms fp32, 258 ms fp32 compiled. Forward + backward
 of 10 grasps (fp32, eager): 72 ms. The cost is the memory traffic of the per-edge MLPs; the fused Triton
 message passing (``fused_message_passing``) keeps each edge tile on chip: 100 grasps of a 1573-vertex box,
-bf16, network 47 ms fused against 101 ms compiled, and its backward kernels make the refinement's
-backward 142 ms against 460 ms (README, planning benchmark).
+bf16, network 42 ms fused (47 ms before the kernels read the node terms in place) against 101 ms
+compiled, and its backward kernels make the refinement's backward 142 ms against 460 ms (README, planning
+benchmark).
 
 All tensor inputs may require grad: :meth:`DefGraspNetsPredictor.predict` with ``grad=True`` keeps the
 graph so that an objective ``Q(out)`` can be back-propagated to finger vertices, gripper poses or closing
