@@ -45,8 +45,9 @@ PREDICTOR_OPTIONS = (
     "static_shapes",
     "share_object",
     "fused_message_passing",
+    "contact_backend",
 )
-PLANNER_OPTIONS = ("pad_levels",)  # GraspPlanner
+PLANNER_OPTIONS = ("pad_levels", "compile_geometry")  # GraspPlanner
 REFINE_OPTIONS = ("reuse_rejected",)  # GraspPlanner.refine
 
 
@@ -164,6 +165,7 @@ def main(cfg: DictConfig) -> None:
             "static_shapes": predictor.static_shapes,
             "share_object": predictor.share_object,
             "fused_message_passing": predictor.fused_message_passing,
+            "compile_geometry": planner.compile_geometry,
         }
         compiles = _Compiles()
         t = time.perf_counter()

@@ -9,6 +9,7 @@ from test_data_synthetic import box_object, grasp_poses, pad_fingers
 from torch_geometric.data import Batch
 
 from defgraspnets.fem.mesh import TetMesh
+from defgraspnets.models import graph as graph_module
 from defgraspnets.models.graph import (
     NODE_FINGER,
     NODE_INTERIOR,
@@ -57,6 +58,27 @@ def test_contact_pairs_match_brute_force(backend):
     assert (0, 0) not in {(int(i), int(j)) for g, i, j in got if g == 0}
     single = contact_pairs(torch.as_tensor(a), torch.as_tensor(b[1]), 0.005, backend=backend).numpy()
     assert {tuple(map(int, p)) for p in single} == _brute(a, b[1], 0.005)
+
+
+@pytest.mark.skipif(
+    not graph_module._triton_runs(torch.zeros(1, device="cuda" if torch.cuda.is_available() else "cpu")),
+    reason="needs Triton on CUDA or its CPU interpreter (TRITON_INTERPRET=1, set by conftest without CUDA)",
+)
+def test_triton_contact_pairs_equal_the_torch_backend_in_float32():
+    """The kernel's exact float32 distances give the pairs of the GEMM backend's exact recheck, in its
+    lexicographic order, for a batch and for one grasp; float64 positions are refused."""
+    dev = "cuda" if torch.cuda.is_available() else "cpu"
+    rng = np.random.default_rng(1)
+    a = torch.as_tensor(rng.uniform(-0.02, 0.02, size=(130, 3)), dtype=torch.float32, device=dev)
+    b = torch.as_tensor(rng.uniform(-0.02, 0.02, size=(3, 70, 3)), dtype=torch.float32, device=dev)
+    want = contact_pairs(a, b, 0.005, backend="torch")
+    got = contact_pairs(a, b, 0.005, backend="triton")
+    assert len(want) > 50
+    assert torch.equal(got, want)
+    assert torch.equal(contact_pairs(a, b[2], 0.005, backend="triton"), want[want[:, 0] == 2][:, 1:])
+    assert contact_pairs(a, b[:, :0], 0.005, backend="triton").shape == (0, 3)
+    with pytest.raises(ValueError, match="float32"):
+        contact_pairs(a.double(), b.double(), 0.005, backend="triton")
 
 
 def _grasp(divisions=(4, 3, 3), g=0):

@@ -29,12 +29,20 @@ their messages and the force feature does not count them, so every output equals
 from __future__ import annotations
 
 import importlib.util
+import os
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import Tensor, nn
 from torch_geometric.data import Data
+
+try:  # Triton ships with CUDA builds of PyTorch; CPU-only installs may lack it
+    import triton
+    import triton.language as tl
+except ImportError:  # pragma: no cover - depends on the installation
+    triton = None
+    tl = None
 
 __all__ = [
     "NODE_FINGER",
@@ -160,6 +168,64 @@ def _kdtree_pairs(a: np.ndarray, b: np.ndarray, radius: float) -> np.ndarray:
     return np.stack([m["i"], m["j"]], axis=1).astype(np.int64)
 
 
+if triton is not None:
+
+    @triton.jit
+    def _contact_mask_kernel(
+        object_ptr,  # (N, 3) object node positions
+        finger_ptr,  # (G, P, 3) finger node positions
+        out_ptr,  # (G, N, P) int8: |x_i - y_j|^2 < r^2
+        N,
+        P,
+        r2,
+        BN: tl.constexpr,
+        BP: tl.constexpr,
+    ):
+        g = tl.program_id(0).to(tl.int64)
+        i = tl.program_id(1) * BN + tl.arange(0, BN)
+        j = tl.program_id(2) * BP + tl.arange(0, BP)
+        in_i, in_j = i < N, j < P
+        fin = finger_ptr + g * P * 3
+        dx = (
+            tl.load(object_ptr + i * 3, mask=in_i, other=0.0)[:, None]
+            - tl.load(fin + j * 3, mask=in_j, other=0.0)[None, :]
+        )
+        dy = (
+            tl.load(object_ptr + i * 3 + 1, mask=in_i, other=0.0)[:, None]
+            - tl.load(fin + j * 3 + 1, mask=in_j, other=0.0)[None, :]
+        )
+        dz = (
+            tl.load(object_ptr + i * 3 + 2, mask=in_i, other=0.0)[:, None]
+            - tl.load(fin + j * 3 + 2, mask=in_j, other=0.0)[None, :]
+        )
+        inside = in_i[:, None] & in_j[None, :]
+        hit = (dx * dx + dy * dy + dz * dz < r2) & inside
+        out = out_ptr + g * N * P + i[:, None].to(tl.int64) * P + j[None, :]
+        tl.store(out, hit.to(tl.int8), mask=inside)
+
+
+def _triton_contact_pairs(op: Tensor, fp: Tensor, radius: float) -> Tensor:
+    """(C, 3) ``[grasp, object_index, finger_index]`` pairs closer than ``radius``: one kernel evaluates
+    the exact squared distances of all (G, N, P) pairs and writes an int8 mask (no float32 distance matrix
+    in memory), then one ``nonzero`` (lexicographic order)."""
+    g, p, n = fp.shape[0], fp.shape[1], op.shape[0]
+    mask = torch.empty(g, n, p, dtype=torch.int8, device=fp.device)
+    if mask.numel():
+        block = 64
+        grid = (g, triton.cdiv(n, block), triton.cdiv(p, block))
+        _contact_mask_kernel[grid](
+            op.contiguous(), fp.contiguous(), mask, n, p, radius * radius, BN=block, BP=block
+        )
+    return mask.nonzero()
+
+
+def _triton_runs(x: Tensor) -> bool:
+    """Whether the contact kernel runs for positions ``x``: Triton on CUDA (or its interpreter), float32."""
+    if triton is None or x.dtype != torch.float32:
+        return False
+    return x.is_cuda or os.environ.get("TRITON_INTERPRET", "0") == "1"
+
+
 def contact_pairs(
     object_pos: Tensor,
     finger_pos: Tensor,
@@ -174,9 +240,10 @@ def contact_pairs(
         finger_pos: (P, 3) finger node positions of one grasp, or (G, P, 3) for G grasps [m].
         radius: contact threshold eps [m].
         backend: ``"kdtree"`` (scipy cKDTree, CPU), ``"torch"`` (batched GEMM distances with an exact
-            recheck, on the tensors' device: 3 ms for 100 grasps x 1000 x 450 nodes on an H100),
+            recheck, on the tensors' device: 3 ms for 100 grasps x 1000 x 450 nodes on an H100), ``"triton"``
+            (one kernel of exact float32 distances writing an int8 mask, then ``nonzero``; CUDA, float32),
             ``"torch_cluster"`` (``torch_cluster.radius``; optional package, not exercised by the tests), or
-            ``"auto"``: torch on CUDA, kdtree on the CPU.
+            ``"auto"``: triton on CUDA for float32 positions (torch for others), kdtree on the CPU.
         chunk: max number of distances evaluated at once by the torch backend (default: 2^28 on CUDA, i.e.
             1 GiB of float32, so that a planning batch of 100 grasps is one GEMM and one host sync; 2^24 on
             the CPU).
@@ -188,11 +255,11 @@ def contact_pairs(
     if radius <= 0:
         raise ValueError(f"contact radius must be positive, got {radius}")
     single = finger_pos.ndim == 2
-    fp = finger_pos.detach().reshape(-1, finger_pos.shape[-2], 3)
+    fp = finger_pos.detach().unsqueeze(0) if single else finger_pos.detach()
     op = object_pos.detach().to(fp.device)
     g, p, n = fp.shape[0], fp.shape[1], op.shape[0]
     if backend == "auto":
-        backend = "torch" if fp.is_cuda else "kdtree"
+        backend = ("triton" if _triton_runs(fp) else "torch") if fp.is_cuda else "kdtree"
     if chunk is None:
         chunk = 1 << 28 if fp.is_cuda else 1 << 24
     if backend == "kdtree":
@@ -228,6 +295,10 @@ def contact_pairs(
             idx[:, 0] += s
             parts.append(idx)
         out = torch.cat(parts) if parts else torch.zeros((0, 3), dtype=torch.long, device=fp.device)
+    elif backend == "triton":
+        if not _triton_runs(fp):
+            raise ValueError("contact backend 'triton' needs Triton, float32 positions and a CUDA device")
+        out = _triton_contact_pairs(op.to(fp.dtype), fp, radius)
     elif backend == "torch_cluster":
         if importlib.util.find_spec("torch_cluster") is None:
             raise ImportError("contact backend 'torch_cluster' needs the torch-cluster package")
@@ -243,7 +314,7 @@ def contact_pairs(
         row, col = row[keep], col[keep]
         out = torch.stack([bx[row], row % n, col % p], dim=1)
     else:
-        raise ValueError(f"unknown contact backend {backend!r} (kdtree, torch, torch_cluster, auto)")
+        raise ValueError(f"unknown contact backend {backend!r} (kdtree, torch, triton, torch_cluster, auto)")
     if len(out):
         key = (out[:, 0] * n + out[:, 1]) * p + out[:, 2]
         out = out[torch.argsort(key)]

@@ -200,6 +200,7 @@ class DefGraspNetsPredictor:
             network.fused_message_passing = self.fused_message_passing
         self.static_shapes = bool(compile) if static_shapes is None else bool(static_shapes)
         self.share_object = bool(share_object)
+        self.compiled = bool(compile)
         if compile:
             options = dict(compile) if isinstance(compile, dict) else {}
             if "dynamic" not in options:

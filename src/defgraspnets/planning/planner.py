@@ -222,6 +222,9 @@ class GraspPlanner:
             device (no host round trips; see :class:`SurfaceClosingDistances`), or with the elements near
             the gripper selected on the host (NumPy collision checks), which is faster on a CPU. None: dense
             unless the device is the CPU. Both give the same results (to rounding).
+        compile_geometry: ``torch.compile`` the dense finger joint states (inductor fuses their few dozen
+            elementwise kernels into a handful; the first call of each batch size compiles). None: on when
+            the predictor compiles its networks (with dense geometry).
     """
 
     def __init__(
@@ -238,6 +241,7 @@ class GraspPlanner:
         pad_trials: bool | None = None,
         pad_levels: int = 3,
         dense_geometry: bool | None = None,
+        compile_geometry: bool | None = None,
     ):
         if not isinstance(mesh, TetMesh):
             raise TypeError(f"mesh must be a TetMesh, got {type(mesh).__name__}")
@@ -276,6 +280,14 @@ class GraspPlanner:
         self._closing = SurfaceClosingDistances(
             self.surface_points, self.surface_faces, gripper, dense=self.dense_geometry
         )
+        if compile_geometry is None:
+            compiled = predictor.compiled and self.dense_geometry
+        else:
+            compiled = bool(compile_geometry)
+        if compiled and not self.dense_geometry:
+            raise ValueError("compile_geometry needs dense_geometry (the host-selected strategy syncs)")
+        self.compile_geometry = compiled
+        self._closing_fn = torch.compile(self._closing.__call__, dynamic=False) if compiled else self._closing
         self._collisions = (
             OpenGripperCollisions(gripper, self.surface_points_np, self.surface_faces, predictor.device)
             if self.dense_geometry
@@ -319,7 +331,7 @@ class GraspPlanner:
     def closing_distances(self, poses, exact: bool = True) -> tuple[Tensor, Tensor]:
         """Finger joint states (G, 2) [m] and contact flags (G, 2) of poses (G, 4, 4) (differentiable)."""
         T = self._poses(poses) if not torch.is_tensor(poses) else poses
-        return self._closing(T, temperature=None if exact else self.closing_temperature)
+        return self._closing_fn(T, temperature=None if exact else self.closing_temperature)
 
     def evaluate(
         self, poses, grad: bool = False, keep_prediction: bool = False, pad_to: int | None = None
