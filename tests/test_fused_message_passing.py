@@ -93,6 +93,23 @@ def test_fused_edge_update_gives_the_updated_latents_and_the_sums_per_target():
 
 
 @needs_kernels
+def test_direct_node_terms_give_the_same_update_without_gradients():
+    """``direct=True``: the kernel multiplies the gathered node latents by W_r, W_s itself (the contact
+    edges' mode in passes without gradients); same latents and sums, masked edges too; refused with
+    gradients."""
+    _, contact_index, mask, g = _graph(n=40, contact_edges=150)
+    mlp = _perturbed(EdgeMLP(16, 2)).requires_grad_(False)
+    edge, node = torch.randn(150, 16, generator=g), torch.randn(40, 16, generator=g)
+    with torch.no_grad():
+        want = fe.fused_edge_update(mlp, edge, node, contact_index, mask)
+        got = fe.fused_edge_update(mlp, edge, node, contact_index, mask, direct=True)
+    for a, b in zip(got, want, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="without gradients"):
+        fe.fused_edge_update(mlp, edge, node.requires_grad_(True), contact_index, mask, direct=True)
+
+
+@needs_kernels
 def test_messages_are_summed_by_target_across_tiles_and_around_masked_edges():
     """Edges ordered by target (as ``graph.directed`` makes them): long runs of one target that span tiles
     (64 edges), masked edges inside a run, and the same target again in a later tile all sum as

@@ -84,6 +84,47 @@ def test_padding_and_shared_object_give_the_plain_outputs_and_gradients(box, gra
         torch.testing.assert_close(grad, ref_grad, rtol=1e-9, atol=1e-12 * ref_grad.abs().max().item())
 
 
+def test_object_encoding_is_kept_per_object_and_modulus(box, grasps):
+    """The shared path keeps the object's features and encoder latents per (template, modulus): a second
+    batch reuses them (with gradients too) and predicts what a fresh predictor does; another modulus or a
+    tensor modulus gets its own encoding."""
+    kept = DefGraspNetsPredictor(_net(), 0.005)
+    first, _ = _predict(kept, box, grasps)
+    assert len(kept._object_encodings) == 1
+    ((template, encoding),) = kept._object_encodings.values()
+    second, grad = _predict(kept, box, grasps, grad=True)
+    assert kept._object_encodings[next(iter(kept._object_encodings))][1] is encoding
+    torch.testing.assert_close(second.stress.detach(), first.stress, rtol=0, atol=0)
+    assert torch.isfinite(grad).all() and grad.abs().sum() > 0
+    other, _ = _predict(kept, box, grasps, youngs=2e6)
+    assert len(kept._object_encodings) == 2
+    fresh, _ = _predict(DefGraspNetsPredictor(_net(), 0.005), box, grasps, youngs=2e6)
+    torch.testing.assert_close(other.stress, fresh.stress, rtol=0, atol=0)
+    assert not torch.allclose(other.stress, first.stress)
+    tensor_modulus, _ = _predict(kept, box, grasps, youngs=torch.tensor(2e6, dtype=torch.float64))
+    assert len(kept._object_encodings) == 2  # a device value is not a key (no host sync)
+    torch.testing.assert_close(tensor_modulus.stress, fresh.stress, rtol=0, atol=0)
+
+
+def test_compiled_finger_joint_states_equal_the_eager_ones(box, grasps):
+    """compile_geometry: torch.compile of the dense finger joint states gives the same closing distances,
+    contact flags and pose gradients (inductor on the CPU in CI); it needs the dense strategy."""
+    predictor = DefGraspNetsPredictor(_net(torch.float32), 0.005)
+    args = (predictor, box, 2e5, PRESETS["min_max_stress"], 15.0)
+    eager = GraspPlanner(*args, dense_geometry=True)
+    compiled = GraspPlanner(*args, dense_geometry=True, compile_geometry=True)
+    assert compiled.compile_geometry and not eager.compile_geometry
+    T = eager._poses(grasps.poses).requires_grad_(True)
+    (c0, t0), (c1, t1) = eager.closing_distances(T, exact=False), compiled.closing_distances(T, exact=False)
+    torch.testing.assert_close(c1, c0, rtol=1e-6, atol=1e-9)
+    assert torch.equal(t1, t0) and t0.any()
+    (g0,) = torch.autograd.grad(c0.sum(), T)
+    (g1,) = torch.autograd.grad(c1.sum(), T)
+    torch.testing.assert_close(g1, g0, rtol=1e-5, atol=1e-7)
+    with pytest.raises(ValueError, match="dense_geometry"):
+        GraspPlanner(*args, dense_geometry=False, compile_geometry=True)
+
+
 def test_shared_object_needs_one_modulus_and_a_one_step_network(box, grasps):
     """Per-grasp moduli and multi-step networks take the plain path, with the same results."""
     shared = DefGraspNetsPredictor(_net(), 0.005)

@@ -157,8 +157,10 @@ class ProcessorBlock(nn.Module):
         edge set updated and summed by target, then the nodes updated (differentiable with respect to the
         latents, not the weights)."""
         mesh, mesh_sum = fused_edge_update(self.mesh_edge, mesh, node, mesh_index)
+        # contact edges touch few nodes: without gradients their kernel multiplies the gathered node
+        # latents itself (no node-term product over all nodes)
         contact, contact_sum = fused_edge_update(
-            self.contact_edge, contact, node, contact_index, contact_mask
+            self.contact_edge, contact, node, contact_index, contact_mask, direct=not torch.is_grad_enabled()
         )
         return fused_node_update(self.node, node, mesh_sum, contact_sum), mesh, contact
 
@@ -423,10 +425,33 @@ class DefGraspNet(nn.Module):
         on contact edges (node features independent of the grasp)."""
         return self.prediction == "one_step" and self.featurizer.force_on == "contact_edges"
 
-    def shared_features(self, g: GraspGraph, num_object_nodes: int, num_object_edges: int) -> tuple:
+    def object_features(self, g: GraspGraph, num_object_nodes: int, num_object_edges: int) -> tuple:
+        """Normalized features (network dtype) of the object part shared by the graphs of
+        :meth:`forward_shared` (from graph 0): nodes (N, ·) and mesh edges (E_o, ·)."""
+        if not self.shares_object_encoding:
+            raise ValueError("forward_shared needs one-step prediction with force_on='contact_edges'")
+        fz, N, E_o = self.featurizer, num_object_nodes, num_object_edges
+        pos, node_type, closing = g.pos, g.node_type, g.closing_dir
+        obj_node = self.node_norm(fz.node_features(node_type[:N], pos[:N], closing[:N]))
+        log_e = torch.log10(g.youngs_modulus[:1].to(pos.dtype)).expand(E_o)
+        obj_mesh = self.mesh_edge_norm(fz.mesh_edge_features(pos, g.mesh_edge_index[:, :E_o], log_e))
+        return obj_node.to(self.network_dtype), obj_mesh.to(self.network_dtype)
+
+    def object_latents(self, object_features: tuple) -> list[tuple[Tensor, Tensor]]:
+        """Encoder latents of the object part (:meth:`object_features`), one pair per network: constants of
+        the object, its modulus and the weights (a planner may keep them across batches)."""
+        return [net.encode_object(*object_features) for net in self.networks]
+
+    def shared_features(
+        self,
+        g: GraspGraph,
+        num_object_nodes: int,
+        num_object_edges: int,
+        object_features: tuple | None = None,
+    ) -> tuple:
         """Normalized features (network dtype) of :meth:`forward_shared`: object nodes (N, ·) and object mesh
-        edges (E_o, ·) of graph 0, finger nodes (G, n - N, ·), finger mesh edges (G, E_M / G - E_o, ·) and
-        contact edges (E_C, ·)."""
+        edges (E_o, ·) of graph 0 (or ``object_features`` as given, see :meth:`object_features`), finger
+        nodes (G, n - N, ·), finger mesh edges (G, E_M / G - E_o, ·) and contact edges (E_C, ·)."""
         if not self.shares_object_encoding:
             raise ValueError("forward_shared needs one-step prediction with force_on='contact_edges'")
         fz = self.featurizer
@@ -435,11 +460,9 @@ class DefGraspNet(nn.Module):
         pos, node_type, closing = g.pos, g.node_type, g.closing_dir
         dtype = pos.dtype
         net_dtype = self.network_dtype
-        # the object part, from graph 0
-        obj_node = self.node_norm(fz.node_features(node_type[:N], pos[:N], closing[:N]))
-        obj_edges = g.mesh_edge_index[:, :E_o]
-        log_e = torch.log10(g.youngs_modulus[:1].to(dtype)).expand(E_o)
-        obj_mesh = self.mesh_edge_norm(fz.mesh_edge_features(pos, obj_edges, log_e))
+        if object_features is None:
+            object_features = self.object_features(g, N, E_o)
+        obj_node, obj_mesh = object_features
         # the per-graph parts: finger nodes, finger mesh edges (log10 E channel zero), contact edges
         fin_node = fz.node_features(
             node_type.view(G, n)[:, N:], pos.view(G, n, 3)[:, N:], closing.view(G, n, 3)[:, N:]
@@ -452,10 +475,15 @@ class DefGraspNet(nn.Module):
         fin_node = self.node_norm(fin_node).to(net_dtype)
         fin_mesh = self.mesh_edge_norm(fin_mesh).to(net_dtype).view(G, per_graph_edges - E_o, -1)
         contact = self.contact_edge_norm(contact).to(net_dtype)
-        return obj_node.to(net_dtype), obj_mesh.to(net_dtype), fin_node, fin_mesh, contact
+        return obj_node, obj_mesh, fin_node, fin_mesh, contact
 
     def forward_shared(
-        self, g: GraspGraph, num_object_nodes: int, num_object_edges: int, features: tuple | None = None
+        self,
+        g: GraspGraph,
+        num_object_nodes: int,
+        num_object_edges: int,
+        features: tuple | None = None,
+        object_latents: list[tuple[Tensor, Tensor]] | None = None,
     ) -> Tensor:
         """:meth:`forward` of G graphs of one object that differ only in their fingers, contacts and forces,
         with the object part encoded once (see the module docstring); (n, 4) standardized outputs.
@@ -465,10 +493,13 @@ class DefGraspNet(nn.Module):
         rest positions and types), and ``g.mesh_edge_index.shape[1] / G`` mesh edges, the first
         ``num_object_edges`` being the object's; and all graphs have the same Young's modulus. Needs
         :attr:`shares_object_encoding` and fitted normalizers (not checked here: no host sync).
+        ``object_latents``: :meth:`object_latents` of this object and modulus, if kept from an earlier batch.
         """
         if features is None:
             features = self.shared_features(g, num_object_nodes, num_object_edges)
         obj_node, obj_mesh, fin_node, fin_mesh, contact = features
+        if object_latents is None:
+            object_latents = self.object_latents((obj_node, obj_mesh))
         mask = g.contact_edge_mask
         outs = [
             net(
@@ -478,9 +509,9 @@ class DefGraspNet(nn.Module):
                 g.mesh_edge_index,
                 g.contact_edge_index,
                 mask,
-                object_latents=net.encode_object(obj_node, obj_mesh),
+                object_latents=latents,
             )
-            for net in self.networks
+            for net, latents in zip(self.networks, object_latents, strict=True)
         ]
         return (outs[0] if len(outs) == 1 else torch.cat(outs, dim=1)).to(g.pos.dtype)
 

@@ -215,6 +215,9 @@ class DefGraspNetsPredictor:
         self._fingers: dict[int, tuple[FingerGeometry, FingerTemplate]] = {}
         self._finger_frames: dict[int, tuple[FingerGeometry, Tensor, Tensor | None]] = {}
         self._capacity: dict[int, int] = {}
+        # object features and encoder latents of the shared-object path, per (template, modulus): constants
+        # of the frozen network, kept across batches (a planner scores and refines one object many times)
+        self._object_encodings: dict[tuple[int, float], tuple[ObjectTemplate, tuple]] = {}
 
     @classmethod
     def from_checkpoint(
@@ -412,6 +415,9 @@ class DefGraspNetsPredictor:
                 else youngs_modulus.numel() == 1
             )
         )
+        # the object part's encoding is kept per (template, modulus) given on the host
+        if shared and not isinstance(youngs_modulus, Tensor):
+            shared = (id(template), float(np.asarray(youngs_modulus, dtype=np.float64).reshape(-1)[0]))
         per_grasp = [v for k, v in fingers.items() if k in _PER_GRASP and v is not None]
         count = len(per_grasp[0]) if per_grasp else 0
         with torch.set_grad_enabled(grad):
@@ -440,14 +446,33 @@ class DefGraspNetsPredictor:
                 )
             )
 
-    def _predict_batch(self, g: GraspGraph, template: ObjectTemplate, shared: bool) -> GraspFieldPrediction:
+    def _object_encoding(self, g: GraspGraph, template: ObjectTemplate, key) -> tuple:
+        """Object features and encoder latents of the shared-object path, kept per ``key`` (the
+        (template id, modulus) pair) when given, with the template itself (an id is only unique while its
+        object lives)."""
+        kept = self._object_encodings.get(key) if key is not None else None
+        if kept is not None and kept[0] is template:
+            return kept[1]
+        with torch.no_grad():
+            features = self.net.object_features(g, template.num_nodes, template.mesh_edge_index.shape[1])
+            encoding = (features, self.net.object_latents(features))
+        if key is not None:
+            if len(self._object_encodings) >= 8:  # a few objects and moduli at a time
+                self._object_encodings.pop(next(iter(self._object_encodings)))
+            self._object_encodings[key] = (template, encoding)
+        return encoding
+
+    def _predict_batch(self, g: GraspGraph, template: ObjectTemplate, shared) -> GraspFieldPrediction:
+        """``shared``: False, True, or the (template id, modulus) key of a kept object encoding."""
         n_obj = template.num_nodes
-        if shared:
+        if shared is not False:
             n_edges = template.mesh_edge_index.shape[1]
             with self._stage("features"):
-                features = self.net.shared_features(g, n_obj, n_edges)
+                key = shared if isinstance(shared, tuple) else None
+                object_features, object_latents = self._object_encoding(g, template, key)
+                features = self.net.shared_features(g, n_obj, n_edges, object_features)
             with self._stage("network"):
-                out = self.net.forward_shared(g, n_obj, n_edges, features)
+                out = self.net.forward_shared(g, n_obj, n_edges, features, object_latents)
                 stress, disp = self.net.to_physical(out, g)
         else:
             with self._stage("network"):
