@@ -197,7 +197,7 @@ def main(cfg: DictConfig) -> None:
         print(f"{v['name']}: score stages [ms]: {split}")
         if cfg.refine:
             t = time.perf_counter()
-            if v.get("compile"):  # warm-up: compiles every batch size the refinement pads to
+            if v.get("compile") or planner.compile_geometry:  # warm-up: compiles every batch size
                 planner.refine(grasps.poses, steps=cfg.refine_steps, seed=1, **refine_options)
             else:  # warm-up of the backward pass
                 planner.refine(grasps.poses[:2], steps=1, **refine_options)
@@ -234,7 +234,7 @@ def main(cfg: DictConfig) -> None:
             compiles.mark("refine")
         if predictor.static_shapes:
             row["contact_capacity"] = {str(k): c for k, c in predictor.contact_capacities.items()}
-        if v.get("compile"):
+        if v.get("compile") or planner.compile_geometry:
             row["compiled_graphs"] = compiles.phases
         result["variants"].append(row)
         out.write_text(json.dumps(result, indent=2) + "\n")

@@ -52,6 +52,7 @@ def main(cfg: DictConfig) -> dict:
         closing_temperature=cfg.closing_temperature,
         batch_size=cfg.batch_size,
         check_collisions=cfg.check_collisions,
+        compile_geometry=cfg.compile_geometry,
     )
     report = plan_grasps(
         planner,

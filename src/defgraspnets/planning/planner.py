@@ -223,8 +223,9 @@ class GraspPlanner:
             the gripper selected on the host (NumPy collision checks), which is faster on a CPU. None: dense
             unless the device is the CPU. Both give the same results (to rounding).
         compile_geometry: ``torch.compile`` the dense finger joint states (inductor fuses their few dozen
-            elementwise kernels into a handful; the first call of each batch size compiles). None: on when
-            the predictor compiles its networks (with dense geometry).
+            elementwise kernels into a handful; static shapes with ``pad_trials``, else automatic dynamic
+            shapes, so that refinement batches of varying size compile once more, not every step). None: on
+            when the predictor compiles its networks (with dense geometry).
     """
 
     def __init__(
@@ -287,7 +288,12 @@ class GraspPlanner:
         if compiled and not self.dense_geometry:
             raise ValueError("compile_geometry needs dense_geometry (the host-selected strategy syncs)")
         self.compile_geometry = compiled
-        self._closing_fn = torch.compile(self._closing.__call__, dynamic=False) if compiled else self._closing
+        # padded batches have a few fixed sizes (static shapes); unpadded ones vary from one refinement
+        # step to the next: automatic dynamic shapes then (one recompilation, no more)
+        dynamic = False if self.pad_trials else None
+        self._closing_fn = (
+            torch.compile(self._closing.__call__, dynamic=dynamic) if compiled else self._closing
+        )
         self._collisions = (
             OpenGripperCollisions(gripper, self.surface_points_np, self.surface_faces, predictor.device)
             if self.dense_geometry
