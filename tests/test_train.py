@@ -212,6 +212,16 @@ def test_learning_rate_decays_exponentially_over_25_epochs():
     assert max(ratios) == pytest.approx(min(ratios)) and ratios[0] == pytest.approx((1e-6 / 5e-5) ** (1 / 25))
 
 
+def test_adam_is_fused_on_cuda_only():
+    """Parameters on the CPU: PyTorch's default Adam; on CUDA (``-m gpu``): the fused implementation."""
+    from defgraspnets.models.defgraspnets_module import DefGraspNetsModule
+
+    module = DefGraspNetsModule(latent=4, num_blocks=1)
+    assert not module.configure_optimizers()["optimizer"].defaults["fused"]
+    if torch.cuda.is_available():
+        assert module.cuda().configure_optimizers()["optimizer"].defaults["fused"]
+
+
 def test_wrong_config_key_is_a_clear_error():
     with pytest.raises(ConfigCompositionException, match="latnt"):
         _compose("model.latnt=64")

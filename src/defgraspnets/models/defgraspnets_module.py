@@ -273,7 +273,11 @@ class DefGraspNetsModule(LightningModule):
     def configure_optimizers(self):
         hp = self.hparams
         cls = torch.optim.AdamW if hp.optimizer == "adamw" else torch.optim.Adam
-        opt = cls(self.parameters(), lr=hp.lr, weight_decay=hp.weight_decay)
+        params = list(self.parameters())
+        # on CUDA the fused implementation: one kernel for all parameters (Lightning moves the module to the
+        # device before it asks for the optimizers)
+        fused = bool(params) and all(p.is_cuda for p in params)
+        opt = cls(params, lr=hp.lr, weight_decay=hp.weight_decay, fused=fused or None)
         ratio = hp.lr_final / hp.lr
         epochs = hp.lr_decay_epochs
         sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda e: ratio ** (min(e, epochs) / epochs))
