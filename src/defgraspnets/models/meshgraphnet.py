@@ -12,9 +12,9 @@ Decode (MLP without LayerNorm)
 Every MLP has ``hidden_layers`` ReLU layers of width l. Edge MLPs are evaluated with their first layer split
 over the concatenation, ``W [m, h_i, h_j] = W_m m + (W_r h)_i + (W_s h)_j``, so the node terms are computed
 once per node and gathered (same function, ~3x fewer first-layer FLOPs on edges). Gathers are
-``index_select`` (whose backward is an ``index_add_``, much faster on CUDA than the sort-based backward of
-advanced indexing). Aggregation is a vectorized ``index_add_`` over edge targets; nothing loops over nodes or
-edges.
+``index_select`` in eager mode (whose backward is an ``index_add_``, much faster on CUDA than the sort-based
+backward of advanced indexing) and advanced indexing under ``torch.compile`` (which inductor fuses).
+Aggregation is a vectorized ``index_add_`` over edge targets; nothing loops over nodes or edges.
 
 Exact reformulations for batches of grasps of one object (planning):
     padded contact edges: ``contact_mask`` (E_C,) zeroes the messages of padding edges, so a contact edge set
@@ -92,11 +92,14 @@ class EdgeMLP(nn.Module):
 
     def forward(self, edge: Tensor, node: Tensor, edge_index: Tensor) -> Tensor:
         src, dst = edge_index
-        z = (
-            self.lin_edge(edge)
-            + self.lin_target(node).index_select(0, dst)
-            + self.lin_source(node).index_select(0, src)
-        )
+        target, source = self.lin_target(node), self.lin_source(node)
+        if torch.compiler.is_compiling():
+            # inductor fuses advanced-indexing gathers (and their scatter-add backward) into its kernels;
+            # index_select stays an extern op: H100, bf16 compiled training at batch 64, 263 -> 347 graphs/s
+            z = self.lin_edge(edge) + target[dst] + source[src]
+        else:
+            # eager: index_select, whose backward index_add_ is much faster than advanced indexing's
+            z = self.lin_edge(edge) + target.index_select(0, dst) + source.index_select(0, src)
         return self.rest(torch.relu(z))
 
 
