@@ -12,9 +12,10 @@ Thesis-size graphs and network on one H100 (goal of the issue: training >= 350 g
 
 (2853 nodes and ~29.8k directed edges per graph.) Measured on one H100 (torch 2.11, 2026-11-23), training
 graphs/s at batch 1 / 8 / 32: fp32 14 / 72 / 92, tf32 13 / 85 / 118, bf16 10 / 78 / 130, tf32 compiled
-18 / 114 / 206; bf16 compiled 317 at batch 32 and 346 at batch 64 (34 GB); forward at batch 32: fp32 223,
-bf16 compiled 866 graphs/s. Each compiled (variant, batch size, mode) spends 30-95 s compiling in its
-warm-up, so the whole command above takes about 20 minutes.
+18 / 114 / 206; bf16 compiled 317 at batch 32 and 346 at batch 64 (34 GB; 350 / 357.5 / 363 at batch
+64 / 96 / 128 since session 16: fused Adam, compiled gathers by advanced indexing); forward at batch 32:
+fp32 223, bf16 compiled 866 graphs/s. Each compiled (variant, batch size, mode) spends 30-95 s compiling in
+its warm-up, so the whole command above takes about 20 minutes.
 
 Graphs are built as the grasp data sets build them: ``sample_antipodal_grasps`` on a structured box, the
 Franka finger pads at first contact (``finger_contact_poses``), one ``build_grasp_graph`` per grasp and PyG's
