@@ -416,15 +416,16 @@ class DefGraspNetsPredictor:
             )
         )
         # the object part's encoding is kept per (template, modulus) given on the host
+        key = None
         if shared and not isinstance(youngs_modulus, Tensor):
-            shared = (id(template), float(np.asarray(youngs_modulus, dtype=np.float64).reshape(-1)[0]))
+            key = (id(template), float(np.asarray(youngs_modulus, dtype=np.float64).reshape(-1)[0]))
         per_grasp = [v for k, v in fingers.items() if k in _PER_GRASP and v is not None]
         count = len(per_grasp[0]) if per_grasp else 0
         with torch.set_grad_enabled(grad):
             step = batch_size or count
             if step >= count:
                 return self._predict_batch(
-                    self.build(template, force, youngs_modulus, **fingers), template, shared
+                    self.build(template, force, youngs_modulus, **fingers), template, shared, key
                 )
             parts = []
             for start in range(0, count, step):
@@ -438,7 +439,7 @@ class DefGraspNetsPredictor:
                     .reshape(-1)
                     .expand(count)[start : start + step]
                 )
-                parts.append(self._predict_batch(self.build(template, f, e, **sub), template, shared))
+                parts.append(self._predict_batch(self.build(template, f, e, **sub), template, shared, key))
             return GraspFieldPrediction(
                 *(
                     torch.cat([getattr(p, k) for p in parts])
@@ -462,13 +463,14 @@ class DefGraspNetsPredictor:
             self._object_encodings[key] = (template, encoding)
         return encoding
 
-    def _predict_batch(self, g: GraspGraph, template: ObjectTemplate, shared) -> GraspFieldPrediction:
-        """``shared``: False, True, or the (template id, modulus) key of a kept object encoding."""
+    def _predict_batch(
+        self, g: GraspGraph, template: ObjectTemplate, shared: bool, key: tuple[int, float] | None
+    ) -> GraspFieldPrediction:
+        """``key``: the (template id, modulus) of a kept object encoding of the shared path, or None."""
         n_obj = template.num_nodes
-        if shared is not False:
+        if shared:
             n_edges = template.mesh_edge_index.shape[1]
             with self._stage("features"):
-                key = shared if isinstance(shared, tuple) else None
                 object_features, object_latents = self._object_encoding(g, template, key)
                 features = self.net.shared_features(g, n_obj, n_edges, object_features)
             with self._stage("network"):
