@@ -315,7 +315,8 @@ def contact_pairs(
         out = torch.stack([bx[row], row % n, col % p], dim=1)
     else:
         raise ValueError(f"unknown contact backend {backend!r} (kdtree, torch, triton, torch_cluster, auto)")
-    if len(out):
+    if backend in ("kdtree", "torch_cluster") and len(out):
+        # (the torch and triton backends' nonzero already lists the pairs in lexicographic order)
         key = (out[:, 0] * n + out[:, 1]) * p + out[:, 2]
         out = out[torch.argsort(key)]
     return out[:, 1:] if single else out
