@@ -15,7 +15,7 @@ from defgraspnets.models.meshgraphnet import EdgeMLP, EncodeProcessDecode
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 needs_kernels = pytest.mark.skipif(
-    not (fe.triton is not None and fe._interpreting()),
+    not (fe.triton is not None and fe.triton_interpreting()),
     reason="needs Triton's CPU interpreter (TRITON_INTERPRET=1, set by conftest without CUDA)",
 )
 

@@ -193,7 +193,7 @@ def test_fused_message_passing_predicts_the_same_fields(trained):
     kw = dict(fingers=geometry, gripper_pose=gripper, closing_distance=dist)
     plain = DefGraspNetsPredictor.from_checkpoint(path)
     assert not plain.fused_message_passing
-    if not (fe.triton is not None and fe._interpreting()):
+    if not (fe.triton is not None and fe.triton_interpreting()):
         pytest.skip("needs Triton's CPU interpreter (TRITON_INTERPRET=1)")
     ref = plain.predict(mesh, 5.0, 2e5, **kw)
     fused = DefGraspNetsPredictor.from_checkpoint(path, fused_message_passing=True)

@@ -47,7 +47,12 @@ except ImportError:  # pragma: no cover - depends on the installation
     triton = None
     tl = None
 
-__all__ = ["fused_edge_update", "fused_message_passing_available", "fused_node_update"]
+__all__ = [
+    "fused_edge_update",
+    "fused_message_passing_available",
+    "fused_node_update",
+    "triton_interpreting",
+]
 
 BLOCK_ROWS = 64  # edges or nodes per program (a 64 x l tile)
 NUM_WARPS = 4
@@ -57,7 +62,8 @@ EDGE_BACKWARD_BLOCK, EDGE_BACKWARD_WARPS = 32, 4
 NODE_BACKWARD_BLOCK, NODE_BACKWARD_WARPS = 64, 8
 
 
-def _interpreting() -> bool:
+def triton_interpreting() -> bool:
+    """Whether Triton kernels run in its CPU interpreter (``TRITON_INTERPRET=1``, as the CPU tests do)."""
     return os.environ.get("TRITON_INTERPRET", "0") == "1"
 
 
@@ -67,7 +73,7 @@ def fused_message_passing_available(device: torch.device | str, dtype: torch.dty
     compiled to scalar FMAs, slow to compile and to run), or the interpreter with any supported dtype."""
     if triton is None or dtype not in (torch.float32, torch.bfloat16, torch.float16):
         return False
-    if _interpreting():
+    if triton_interpreting():
         return True
     return torch.device(device).type == "cuda" and dtype != torch.float32
 

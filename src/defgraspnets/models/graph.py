@@ -29,7 +29,6 @@ their messages and the force feature does not count them, so every output equals
 from __future__ import annotations
 
 import importlib.util
-import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,12 +36,7 @@ import torch
 from torch import Tensor, nn
 from torch_geometric.data import Data
 
-try:  # Triton ships with CUDA builds of PyTorch; CPU-only installs may lack it
-    import triton
-    import triton.language as tl
-except ImportError:  # pragma: no cover - depends on the installation
-    triton = None
-    tl = None
+from defgraspnets.models.fused_message_passing import tl, triton, triton_interpreting
 
 __all__ = [
     "NODE_FINGER",
@@ -223,7 +217,7 @@ def _triton_runs(x: Tensor) -> bool:
     """Whether the contact kernel runs for positions ``x``: Triton on CUDA (or its interpreter), float32."""
     if triton is None or x.dtype != torch.float32:
         return False
-    return x.is_cuda or os.environ.get("TRITON_INTERPRET", "0") == "1"
+    return x.is_cuda or triton_interpreting()
 
 
 def contact_pairs(
