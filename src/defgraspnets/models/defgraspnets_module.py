@@ -97,7 +97,8 @@ class DefGraspNetsModule(LightningModule):
 
     Args:
         latent, num_blocks, hidden_layers, outputs, prediction, num_steps, force_feature, force_on,
-            stress_reference, modulus_reference: see :class:`DefGraspNet`.
+            stress_reference, modulus_reference, modulus_saturation: see :class:`DefGraspNet` (checkpoints
+            saved without ``modulus_saturation`` load with ``None``, the scaling they were trained with).
         stress_weight, displacement_weight: loss weights.
         optimizer: ``"adam"`` or ``"adamw"``. lr, lr_final, lr_decay_epochs: exponential decay.
         weight_decay: optimizer weight decay.
@@ -116,6 +117,7 @@ class DefGraspNetsModule(LightningModule):
         force_on: str = "contact_edges",
         stress_reference: float = 1e3,
         modulus_reference: float = 1e6,
+        modulus_saturation: float | None = None,
         stress_weight: float = 1.0,
         displacement_weight: float = 1.0,
         optimizer: str = "adam",
@@ -142,6 +144,7 @@ class DefGraspNetsModule(LightningModule):
             force_on,
             stress_reference,
             modulus_reference,
+            modulus_saturation,
         )
         self.register_buffer("contact_radius", torch.tensor(float("nan"), dtype=torch.float64))
         self.metrics = {"val": FieldMetrics(), "test": FieldMetrics()}

@@ -260,7 +260,8 @@ class DefGraspNet(nn.Module):
         outputs: ``"joint"`` or ``"separate"`` (V1). prediction: ``"one_step"`` or ``"multi_step"`` (V2).
         num_steps: force increments of a multi-step rollout.
         force_feature, force_on: see :class:`~defgraspnets.models.graph.MultigraphFeaturizer` (V3, V4).
-        stress_reference, modulus_reference: target scaling [Pa], see :mod:`defgraspnets.data.normalization`.
+        stress_reference, modulus_reference, modulus_saturation: target scaling [Pa], see
+            :mod:`defgraspnets.data.normalization` (``modulus_saturation=None``: ``d E / E_ref``).
 
     ``forward`` gives standardized outputs (n, 4) = [stress, displacement xyz]; :meth:`fields` gives von Mises
     stress [Pa] (n,) and displacement [m] (n, 3) of the final state (one pass, or a multi-step rollout).
@@ -278,6 +279,7 @@ class DefGraspNet(nn.Module):
         force_on: str = "contact_edges",
         stress_reference: float = 1e3,
         modulus_reference: float = 1e6,
+        modulus_saturation: float | None = None,
     ):
         super().__init__()
         if outputs not in ("joint", "separate"):
@@ -294,7 +296,9 @@ class DefGraspNet(nn.Module):
         self.contact_edge_norm = Normalizer(fz.contact_edge_dim, "contact edge features")
         self.stress_norm = Normalizer(1, "stress target")
         self.displacement_norm = Normalizer(3, "displacement target", isotropic=True)
-        self.scaling = TargetScaling(stress_reference, modulus_reference)
+        self.scaling = TargetScaling(
+            stress_reference, modulus_reference, modulus_saturation=modulus_saturation
+        )
         dims = (fz.node_dim, fz.mesh_edge_dim, fz.contact_edge_dim)
         out_dims = (4,) if outputs == "joint" else (1, 3)
         self.networks = nn.ModuleList(
@@ -332,7 +336,7 @@ class DefGraspNet(nn.Module):
         return g.pos
 
     def scaled_targets(self, g: GraspGraph) -> tuple[Tensor, Tensor]:
-        """Scaled (not yet standardized) targets: log-stress (n, 1) and ``d E / E_ref`` (n, 3).
+        """Scaled (not yet standardized) targets: log-stress (n, 1) and scaled displacement (n, 3).
 
         Multi-step: the displacement target is the increment ``d_s - d_{s'}`` from the previous state.
         """
