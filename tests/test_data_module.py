@@ -12,6 +12,7 @@ from defgraspnets.data.datamodule import GraspDataModule
 from defgraspnets.data.dataset import DataError, GraspFieldDataset, discover_shards, sample_index
 from defgraspnets.data.grasp_schema import GraspShard
 from defgraspnets.data.splits import ShardInfo, make_split
+from defgraspnets.grasp.metrics import best_rigid_transform, rigid_removed_deformation
 from defgraspnets.models.graph import NODE_FINGER
 
 
@@ -139,3 +140,62 @@ def test_datamodule_errors(tmp_path, data_dir):
         GraspDataModule(str(data_dir), split="nope")
     with pytest.raises(ValueError, match="no shard"):
         GraspDataModule(str(data_dir), objects=["cuboid_a", "pear"]).setup("fit")
+
+
+def _deformed(g, disp):
+    return (g.pos.double() + disp.double()).numpy()
+
+
+def test_rigid_removed_target_is_the_total_field_in_the_object_frame(shards):
+    """The rigid-removed target moves every node (object and fingers) by one rigid transform: node-to-node
+    distances are those of the total field, the object part has no rigid motion left and its magnitudes are
+    the §6.5 rigid-removed deformation."""
+    solved = [(i, *kg) for i in (0, 1) for kg in np.argwhere(shards[i].status == 0)[:1]]
+    samples = sample_index(shards, np.array(solved), None)
+    total = GraspFieldDataset(shards, samples)
+    removed = GraspFieldDataset(shards, samples, displacement="rigid_removed")
+    for i in range(len(samples)):
+        a, b = total[i], removed[i]
+        torch.testing.assert_close(a.stress, b.stress)
+        torch.testing.assert_close(a.pos, b.pos)
+        n = shards[int(a.sample[0, 0])].num_vertices
+        xa, xb = _deformed(a, a.displacement), _deformed(b, b.displacement)
+        pick = np.r_[0:n:7, n : len(xa) : 11]  # object and finger nodes
+        da = np.linalg.norm(xa[pick, None] - xa[None, pick], axis=-1)
+        db = np.linalg.norm(xb[pick, None] - xb[None, pick], axis=-1)
+        np.testing.assert_allclose(db, da, atol=2e-7)
+        rest = a.pos[:n].double().numpy()
+        R, t = best_rigid_transform(rest, xb[:n])
+        np.testing.assert_allclose(R, np.eye(3), atol=1e-6)
+        np.testing.assert_allclose(t, 0.0, atol=1e-7)
+        expected = rigid_removed_deformation(rest, xa[:n])
+        np.testing.assert_allclose(
+            np.linalg.norm(b.displacement[:n].double().numpy(), axis=1), expected, atol=2e-7
+        )
+
+
+def test_rigid_motion_of_the_object_leaves_no_rigid_removed_displacement(shards):
+    """A rigidly turned and shifted object (fingers carried along) has zero rigid-removed displacement."""
+    ds = GraspFieldDataset(shards, sample_index(shards, np.array([[0, 2, 3]]), [0]))
+    g = ds[0]
+    angle = np.radians(14.0)
+    rot = torch.tensor(
+        [[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0.0, 0.0, 1.0]],
+        dtype=torch.float64,
+    )
+    pos = g.pos.double()
+    disp = (pos @ rot.T + torch.tensor([1e-3, 5e-3, -3e-3], dtype=torch.float64) - pos).float()
+    out = GraspFieldDataset._remove_rigid_motion(g.pos, disp, shards[0].num_vertices)
+    assert out.abs().max() < 1e-7
+
+
+def test_displacement_target_config_errors(shards, data_dir):
+    samples = sample_index(shards, np.array([[0, 2, 3]]), [1])
+    with pytest.raises(ValueError, match="displacement='rigid' is not one of"):
+        GraspFieldDataset(shards, samples, displacement="rigid")
+    with pytest.raises(ValueError, match="ramp_stride"):
+        GraspFieldDataset(shards, samples, ramp_stride=1, displacement="rigid_removed")
+    with pytest.raises(ValueError, match="data.displacement='x' is not one of"):
+        GraspDataModule(str(data_dir), displacement="x")
+    with pytest.raises(ValueError, match="data.ramp_stride"):
+        GraspDataModule(str(data_dir), displacement="rigid_removed", ramp_stride=1)

@@ -1,4 +1,5 @@
-"""Target scaling of DefGraspNets (defgraspnets.data.normalization): invertible, frame-independent, and with
+"""Target scaling of DefGraspNets (defgraspnets.data.normalization) and the displacement target saved with
+the model. The scaling is invertible, frame-independent, and with
 the modulus saturation the rigid motion of a stiff object is not amplified."""
 
 import math
@@ -64,3 +65,17 @@ def test_checkpoint_without_saturation_keeps_plain_scaling(tmp_path):
     torch.save(ckpt, path)
     old = DefGraspNetsModule.load_from_checkpoint(path, map_location="cpu")
     assert old.net.scaling.modulus_saturation is None
+
+
+def test_displacement_target_travels_with_the_checkpoint():
+    module = DefGraspNetsModule(latent=8, num_blocks=1)
+    assert module.displacement_target == "total"
+    module._displacement_target = "rigid_removed"
+    ckpt: dict = {}
+    module.on_save_checkpoint(ckpt)
+    loaded = DefGraspNetsModule(latent=8, num_blocks=1)
+    loaded.on_load_checkpoint(ckpt)
+    assert loaded.displacement_target == "rigid_removed"
+    older = DefGraspNetsModule(latent=8, num_blocks=1)
+    older.on_load_checkpoint({})  # saved before the choice existed: trained on the total field
+    assert older.displacement_target == "total"

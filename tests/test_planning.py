@@ -18,6 +18,7 @@ from test_data_synthetic import make_shards
 from defgraspnets.data.datamodule import GraspDataModule
 from defgraspnets.grasp.datagen import structured_box
 from defgraspnets.grasp.gripper import FRANKA_HAND
+from defgraspnets.grasp.metrics import rigid_removed_deformation
 from defgraspnets.grasp.sampler import sample_antipodal_grasps
 from defgraspnets.models.defgraspnets_module import DefGraspNetsModule
 from defgraspnets.models.meshgraphnet import DefGraspNet
@@ -308,6 +309,24 @@ def test_simulated_grasps_give_the_objective_of_the_fem_fields(box, grasps):
     assert np.all(sim.stress > 0) and sim.displacement.shape == (2, box.num_vertices, 3)
     with pytest.raises(ValueError, match="NaN"):
         GraspPoses(np.full((1, 4, 4), np.nan), np.zeros((1, 2)))
+
+
+def test_simulated_grasps_score_the_field_the_model_predicts(box, grasps):
+    """A model trained on rigid-removed displacements is verified against rigid-removed FEM fields."""
+    poses = GraspPoses(grasps.poses[:2], grasps.closing_distances[:2])
+    args = (box, poses, 1e6, PRESETS["min_mean_deformation"])
+    total = simulate_grasps(*args, force=10.0, steps=2)
+    removed = simulate_grasps(*args, force=10.0, steps=2, displacement_target="rigid_removed")
+    assert total.converged.all() and removed.converged.all()
+    np.testing.assert_allclose(removed.stress, total.stress)
+    x = box.points + total.displacement
+    expected = rigid_removed_deformation(box.points, x)
+    np.testing.assert_allclose(np.linalg.norm(removed.displacement, axis=-1), expected, atol=1e-12)
+    np.testing.assert_allclose(removed.q, expected.mean(axis=1), rtol=1e-12)
+    # the best rigid fit includes the identity: never more squared displacement than the total field
+    assert np.all((removed.displacement**2).sum(axis=(1, 2)) <= (total.displacement**2).sum(axis=(1, 2)))
+    with pytest.raises(ValueError, match="displacement_target"):
+        simulate_grasps(*args, displacement_target="rigid")
 
 
 # ---------------------------------------------------------------------------------------------- entry point

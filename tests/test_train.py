@@ -61,6 +61,7 @@ def first_run(data_root):
         f"paths.log_dir={data_root}/logs",
         f"hydra.run.dir={out}",
         "trainer.max_epochs=1",
+        "data.displacement=rigid_removed",  # fit, resume and evaluate on the non-default target
         *TINY,
         cwd=data_root,
     )
@@ -97,6 +98,8 @@ def test_train_fits_tests_and_checkpoints(first_run):
         and ckpt["datamodule_hyper_parameters"]["split"] == "unseen_grasps"
     )
     assert float(ckpt["state_dict"]["contact_radius"]) == pytest.approx(0.005)
+    assert ckpt["displacement_target"] == "rigid_removed"
+    assert ckpt["datamodule_hyper_parameters"]["displacement"] == "rigid_removed"
     assert ckpt["state_dict"]["net.stress_norm.count"] > 0
 
 

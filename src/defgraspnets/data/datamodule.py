@@ -16,7 +16,12 @@ from lightning import LightningDataModule
 from torch.utils.data import Subset
 from torch_geometric.loader import DataLoader
 
-from defgraspnets.data.dataset import GraspFieldDataset, discover_shards, sample_index
+from defgraspnets.data.dataset import (
+    GraspFieldDataset,
+    check_displacement_target,
+    discover_shards,
+    sample_index,
+)
 from defgraspnets.data.grasp_schema import GraspShard
 from defgraspnets.data.splits import SPLITS, ShardInfo, Split, make_split
 from defgraspnets.models.graph import DEFAULT_CONTACT_RADIUS
@@ -45,6 +50,8 @@ class GraspDataModule(LightningDataModule):
         contact_backend: ``kdtree`` | ``torch`` | ``torch_cluster`` | ``auto`` (see ``contact_pairs``).
         ramp_stride: steps between the previous and the target state for multi-step training (ablation V2);
             ``None`` for one-step models.
+        displacement: displacement target, ``"total"`` (thesis §7.4) or ``"rigid_removed"`` (the object's
+            best rigid motion removed, see :mod:`defgraspnets.data.dataset`); stored in the checkpoint.
         batch_size: graphs per training batch (thesis: 1). eval_batch_size: default ``batch_size``.
         num_workers, pin_memory, persistent_workers: DataLoader options.
         statistics_samples: training samples used for the normalization statistics.
@@ -65,6 +72,7 @@ class GraspDataModule(LightningDataModule):
         contact_radius: float = DEFAULT_CONTACT_RADIUS,
         contact_backend: str = "kdtree",
         ramp_stride: int | None = None,
+        displacement: str = "total",
         batch_size: int = 1,
         eval_batch_size: int | None = None,
         num_workers: int = 0,
@@ -79,7 +87,9 @@ class GraspDataModule(LightningDataModule):
             raise ValueError(f"data.batch_size must be >= 1, got {batch_size}")
         if contact_radius <= 0:
             raise ValueError(f"data.contact_radius must be positive [m], got {contact_radius}")
+        check_displacement_target(displacement, ramp_stride, prefix="data.")
         self.save_hyperparameters(logger=False)
+        self.displacement = displacement
         self.data_dir = Path(data_dir)
         self.split_name = split
         self.contact_radius = float(contact_radius)
@@ -119,7 +129,13 @@ class GraspDataModule(LightningDataModule):
         for part, steps in (("train", self.train_steps), ("val", self.eval_steps), ("test", self.eval_steps)):
             samples = sample_index(shards, getattr(self.split, part), steps)
             self.datasets[part] = GraspFieldDataset(
-                shards, samples, object_ids, self.contact_radius, hp.contact_backend, self.ramp_stride
+                shards,
+                samples,
+                object_ids,
+                self.contact_radius,
+                hp.contact_backend,
+                self.ramp_stride,
+                self.displacement,
             )
         log.info(
             "grasp data %s: %s shards, split %s, samples train/val/test = %d/%d/%d",

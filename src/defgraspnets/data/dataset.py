@@ -7,6 +7,13 @@ displacement [m] at step ``s`` (finger nodes carry their rigid travel ``travel_f
 ``/ramp/status == 0`` are ever indexed. With ``ramp_stride`` set (multi-step ablation V2), a sample also
 carries the ground-truth state at step ``s - ramp_stride`` (the rest state when negative).
 
+Displacement target (``displacement=``): ``"total"`` is the thesis's deformation field (§7.4: each vertex's
+position change, the object's rigid motion in the grasp included); ``"rigid_removed"`` removes the best rigid
+motion of the object's vertices (Kabsch with equal vertex weights, as the §6.5 metric) and expresses
+every node, finger nodes included, in the object's co-moving frame: ``R^T (x - t) - X``. A stiff object turns
+into the pads by up to ~14 deg at 3 N (``benchmarks/defgraspnets_scaling_ab_h100.md``) while deforming by
+microns: the first target ranks grasps by that turn, the second by the deformation that can damage it.
+
 Static data (meshes, multigraph topology, contact edges of each grasp) are built once per shard / grasp and
 cached; the large fields are read lazily, one HDF5 chunk per sample, so DataLoader workers can stream them.
 """
@@ -21,6 +28,7 @@ import torch
 from torch.utils.data import Dataset
 
 from defgraspnets.data.grasp_schema import STATUS_SOLVED, GraspShard
+from defgraspnets.grasp.metrics import best_rigid_transform, undo_rigid_motion
 from defgraspnets.models.graph import (
     DEFAULT_CONTACT_RADIUS,
     FingerTemplate,
@@ -30,7 +38,16 @@ from defgraspnets.models.graph import (
     contact_pairs,
 )
 
-__all__ = ["DataError", "GraspFieldDataset", "discover_shards", "sample_index"]
+__all__ = [
+    "DISPLACEMENT_TARGETS",
+    "DataError",
+    "GraspFieldDataset",
+    "check_displacement_target",
+    "discover_shards",
+    "sample_index",
+]
+
+DISPLACEMENT_TARGETS = ("total", "rigid_removed")
 
 
 class DataError(ValueError):
@@ -52,6 +69,18 @@ def discover_shards(data_dir: str | Path) -> list[Path]:
         hint = f" ({len(partial)} unfinished .partial.h5 shards: resume their generation)" if partial else ""
         raise FileNotFoundError(f"no finished grasp shards (*.h5) in {d}{hint}")
     return paths
+
+
+def check_displacement_target(displacement: str, ramp_stride: int | None, prefix: str = "") -> None:
+    """Raise ValueError unless ``displacement`` is a known target usable with ``ramp_stride``
+    (``prefix``: config path of the keys in the message, e.g. ``"data."``)."""
+    if displacement not in DISPLACEMENT_TARGETS:
+        raise ValueError(f"{prefix}displacement={displacement!r} is not one of {DISPLACEMENT_TARGETS}")
+    if displacement != "total" and ramp_stride is not None:
+        raise ValueError(
+            f"{prefix}displacement={displacement!r} cannot be combined with {prefix}ramp_stride (multi-step "
+            f"training adds world-frame increments); use {prefix}displacement=total"
+        )
 
 
 def resolve_steps(steps: Sequence[int] | None, num_steps: int, where: str = "") -> np.ndarray:
@@ -97,6 +126,8 @@ class GraspFieldDataset(Dataset):
         object_ids: object index of each shard (default: shard index) stored as ``object_id``.
         contact_radius: eps [m] of the contact edges. contact_backend: see ``contact_pairs``.
         ramp_stride: if set, also provide the state at step ``s - ramp_stride`` (multi-step training).
+        displacement: ``"total"`` or ``"rigid_removed"`` target (module docstring); multi-step training
+            (``ramp_stride``) needs ``"total"`` (its increments add up in one frame).
 
     Each item has ``pos, node_type, finger_id, closing_dir, mesh_edge_index, contact_edge_index, force,
     youngs_modulus, stress, displacement, sample, object_id`` (+ ``prev_displacement, prev_force``).
@@ -110,7 +141,10 @@ class GraspFieldDataset(Dataset):
         contact_radius: float = DEFAULT_CONTACT_RADIUS,
         contact_backend: str = "kdtree",
         ramp_stride: int | None = None,
+        displacement: str = "total",
     ):
+        check_displacement_target(displacement, ramp_stride)
+        self.displacement = displacement
         self.shards = list(shards)
         self.samples = np.asarray(samples, dtype=np.int64).reshape(-1, 4)
         self.object_ids = list(range(len(self.shards))) if object_ids is None else list(object_ids)
@@ -170,6 +204,14 @@ class GraspFieldDataset(Dataset):
         d = sh.finger_travel[k, g, s][:, None] * sh.closing_direction[g]  # (2, 3)
         return torch.as_tensor(np.repeat(d, v, axis=0), dtype=torch.float32)
 
+    @staticmethod
+    def _remove_rigid_motion(pos: torch.Tensor, disp: torch.Tensor, n: int) -> torch.Tensor:
+        """All nodes' displacements in the co-moving frame of the object's first ``n`` nodes (float64 fit)."""
+        rest = pos.double().numpy()
+        moved = rest + disp.double().numpy()
+        R, t = best_rigid_transform(rest[:n], moved[:n])
+        return torch.as_tensor(undo_rigid_motion(moved, R, t) - rest, dtype=disp.dtype)
+
     def __getitem__(self, i: int) -> GraspGraph:
         shard, k, g, s = (int(x) for x in self.samples[i])
         sh = self.shards[shard]
@@ -188,6 +230,8 @@ class GraspFieldDataset(Dataset):
         stress, disp = self._fields(shard, k, g, s)
         data.stress = torch.cat([stress, torch.zeros(2 * v)])
         data.displacement = torch.cat([disp, self._finger_displacement(shard, k, g, s, v)])
+        if self.displacement == "rigid_removed":
+            data.displacement = self._remove_rigid_motion(data.pos, data.displacement, len(disp))
         if self.ramp_stride is not None:
             sp = s - self.ramp_stride
             if sp >= 0:

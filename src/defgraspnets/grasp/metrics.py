@@ -29,6 +29,8 @@ __all__ = [
     "max_von_mises_stress",
     "performance_metrics",
     "rigid_removed_deformation",
+    "rigid_removed_displacement",
+    "undo_rigid_motion",
     "von_mises_stress",
 ]
 
@@ -98,13 +100,24 @@ def best_rigid_transform(rest, deformed, weights=None) -> tuple[np.ndarray, np.n
     return R, t
 
 
+def undo_rigid_motion(points, R, t) -> np.ndarray:
+    """(..., M, 3) points mapped back by the inverse of ``x = R X + t``: ``R^T (x - t)`` (R (..., 3, 3),
+    t (..., 3) as from :func:`best_rigid_transform`)."""
+    x = np.asarray(points, dtype=np.float64)
+    return np.einsum("...ji,...nj->...ni", R, x - np.asarray(t)[..., None, :])
+
+
+def rigid_removed_displacement(rest, deformed, weights=None) -> np.ndarray:
+    """(..., N, 3) displacement field with the best rigid motion removed, in the rest frame:
+    ``R^T (x_i - t) - X_i`` [m] (:func:`best_rigid_transform`); its norm is ``|x_i - (R X_i + t)|``."""
+    R, t = best_rigid_transform(rest, deformed, weights)
+    return undo_rigid_motion(deformed, R, t) - np.asarray(rest, dtype=np.float64)
+
+
 def rigid_removed_deformation(rest, deformed, weights=None) -> np.ndarray:
     """(..., N) per-node deformation with the best rigid motion removed, ``|x_i - (R X_i + t)|`` [m]
     (:func:`best_rigid_transform`)."""
-    R, t = best_rigid_transform(rest, deformed, weights)
-    X = np.asarray(rest, dtype=np.float64)
-    fitted = np.einsum("...ij,nj->...ni", R, X) + t[..., None, :]
-    return np.linalg.norm(np.asarray(deformed, dtype=np.float64) - fitted, axis=-1)
+    return np.linalg.norm(rigid_removed_displacement(rest, deformed, weights), axis=-1)
 
 
 def max_deformation(rest, deformed, weights=None) -> np.ndarray:

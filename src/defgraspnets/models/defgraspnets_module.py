@@ -147,6 +147,8 @@ class DefGraspNetsModule(LightningModule):
             modulus_saturation,
         )
         self.register_buffer("contact_radius", torch.tensor(float("nan"), dtype=torch.float64))
+        # displacement target of the training data (data.displacement), saved in the checkpoint; None: not set
+        self._displacement_target: str | None = None
         self.metrics = {"val": FieldMetrics(), "test": FieldMetrics()}
         self.loss_sums = {"val": LossSums(), "test": LossSums()}
         object.__setattr__(
@@ -164,6 +166,15 @@ class DefGraspNetsModule(LightningModule):
                 elif abs(float(self.contact_radius) - radius) > 1e-12:
                     raise ValueError(
                         f"data.contact_radius={radius} differs from the model's {float(self.contact_radius)}"
+                    )
+            target = getattr(dm, "displacement", None)
+            if target is not None:
+                if self._displacement_target is None:
+                    self._displacement_target = str(target)
+                elif self._displacement_target != target:
+                    raise ValueError(
+                        f"data.displacement={target} differs from the {self._displacement_target!r} "
+                        "displacement target the model was trained on"
                     )
             if self.hparams.prediction == "multi_step" and getattr(dm, "ramp_stride", None) is None:
                 raise ValueError(
@@ -285,6 +296,19 @@ class DefGraspNetsModule(LightningModule):
         epochs = hp.lr_decay_epochs
         sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda e: ratio ** (min(e, epochs) / epochs))
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "epoch"}}
+
+    @property
+    def displacement_target(self) -> str:
+        """What the predicted displacement is: ``"total"`` (each vertex's position change, thesis §7.4; also
+        every checkpoint saved before the choice existed) or ``"rigid_removed"`` (the object's best rigid
+        motion removed, in its co-moving frame; see :mod:`defgraspnets.data.dataset`)."""
+        return self._displacement_target or "total"
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        checkpoint["displacement_target"] = self.displacement_target
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        self._displacement_target = checkpoint.get("displacement_target", "total")
 
     @property
     def contact_radius_m(self) -> float:

@@ -158,6 +158,10 @@ class DefGraspNetsPredictor:
             frozen). ``None`` (default): on where the kernels run (Triton, CUDA, ``precision="bf16"``).
             ``True`` where they cannot run is an error.
 
+    ``displacement_target``: what the predicted displacement is, ``"total"`` or ``"rigid_removed"`` (set
+    from the checkpoint by :meth:`from_checkpoint`; see
+    :attr:`~defgraspnets.models.defgraspnets_module.DefGraspNetsModule.displacement_target`).
+
     ``timer``: an optional callable ``timer(stage)`` returning a context manager (e.g.
     :class:`defgraspnets.planning.timing.StageTimer`) wrapped around the stages ``fingers``, ``graph``,
     ``features`` (shared-object path) and ``network`` of each prediction.
@@ -209,6 +213,7 @@ class DefGraspNetsPredictor:
                 network.compile(**options)
         self.contact_radius = float(contact_radius)
         self.contact_backend = contact_backend
+        self.displacement_target = "total"
         self.timer = None
         self._objects: dict[int, tuple[object, ObjectTemplate]] = {}
         self._on_device: dict[int, tuple[object, object]] = {}
@@ -230,7 +235,9 @@ class DefGraspNetsPredictor:
         if not path.exists():
             raise FileNotFoundError(f"checkpoint not found: {path}")
         module = DefGraspNetsModule.load_from_checkpoint(path, map_location="cpu")
-        return cls(module.net, module.contact_radius_m, device, **kwargs)
+        predictor = cls(module.net, module.contact_radius_m, device, **kwargs)
+        predictor.displacement_target = module.displacement_target
+        return predictor
 
     @property
     def dtype(self) -> torch.dtype:

@@ -207,6 +207,7 @@ def plan_grasps(
         sim = simulate_grasps(
             mesh, batch, planner.youngs_modulus, obj, planner.force, verify_steps, friction,
             poisson_ratio, density, planner.gripper, material_model, device=fem_device, progress=progress,
+            displacement_target=planner.predictor.displacement_target,
         )  # fmt: skip
         timings["verify_s"] = sim.seconds
         bounds = np.cumsum([0] + [len(g) for g in groups.values()])

@@ -19,7 +19,9 @@ import numpy as np
 import torch
 
 from defgraspnets import fem
+from defgraspnets.data.dataset import DISPLACEMENT_TARGETS
 from defgraspnets.grasp.gripper import FRANKA_HAND, ParallelJawGripper
+from defgraspnets.grasp.metrics import rigid_removed_displacement
 from defgraspnets.grasp.squeeze import make_squeeze_solver, squeeze_ramp, squeeze_solver_options
 
 from .objectives import GraspObjective
@@ -77,13 +79,18 @@ def simulate_grasps(
     device=None,
     options: fem.SolverOptions | None = None,
     progress: bool = False,
+    displacement_target: str = "total",
 ) -> SimulatedGrasps:
     """Squeeze every grasp to ``force`` [N] in ``steps`` load steps (one batched FEM problem per grasp).
 
     A grasp whose ramp fails at any step (or inverts a tet) gets NaN fields and Q and ``converged`` False;
     it is reported, never scored as if it had an answer. ``material_model``: the FEM's constitutive energy,
-    as the checkpoint's training data (``datagen/grasps.py`` default: neohookean).
+    as the checkpoint's training data (``datagen/grasps.py`` default: neohookean). ``displacement_target``:
+    the field the model predicts (``DefGraspNetsPredictor.displacement_target``); ``"rigid_removed"``
+    removes each grasp's best rigid motion of the object before Q is computed, as in the training data.
     """
+    if displacement_target not in DISPLACEMENT_TARGETS:
+        raise ValueError(f"displacement_target={displacement_target!r} is not one of {DISPLACEMENT_TARGETS}")
     import time
 
     t0 = time.perf_counter()
@@ -100,6 +107,8 @@ def simulate_grasps(
     final = eqs[-1]
     stress = np.where(ok[:, None], final.von_mises, np.nan)
     disp = np.where(ok[:, None, None], final.displacement, np.nan)
+    if displacement_target == "rigid_removed" and ok.any():
+        disp[ok] = rigid_removed_displacement(mesh.points, mesh.points + disp[ok])
     with torch.no_grad():
         q = objective(torch.as_tensor(np.nan_to_num(stress)), torch.as_tensor(np.nan_to_num(disp))).numpy()
     q = np.where(ok, q, np.nan)
