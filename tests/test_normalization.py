@@ -79,3 +79,7 @@ def test_displacement_target_travels_with_the_checkpoint():
     older = DefGraspNetsModule(latent=8, num_blocks=1)
     older.on_load_checkpoint({})  # saved before the choice existed: trained on the total field
     assert older.displacement_target == "total"
+    resumed = DefGraspNetsModule(latent=8, num_blocks=1)
+    resumed._displacement_target = "total"  # what setup() took from data.displacement when resuming
+    with pytest.raises(ValueError, match="data.displacement=total differs from the 'rigid_removed'"):
+        resumed.on_load_checkpoint(ckpt)

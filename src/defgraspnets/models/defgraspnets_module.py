@@ -308,7 +308,14 @@ class DefGraspNetsModule(LightningModule):
         checkpoint["displacement_target"] = self.displacement_target
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
-        self._displacement_target = checkpoint.get("displacement_target", "total")
+        saved = checkpoint.get("displacement_target", "total")
+        # resuming (train.py ckpt_path=...): setup() has already taken the datamodule's target
+        if self._displacement_target is not None and self._displacement_target != saved:
+            raise ValueError(
+                f"data.displacement={self._displacement_target} differs from the {saved!r} displacement "
+                "target of the checkpoint"
+            )
+        self._displacement_target = saved
 
     @property
     def contact_radius_m(self) -> float:
