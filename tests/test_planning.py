@@ -378,6 +378,7 @@ def test_plan_grasps_script(checkpoint, tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     report = json.loads((out / "plan.json").read_text())
     assert report["objective"]["name"] == "max_mean_deformation" and report["objective"]["units"] == "m"
+    assert report["displacement_target"] == "total"  # the checkpoint was saved on the total field
     assert len(report["samples"]) == 16 and len(report["ranking"]) >= 4
     q = [report["samples"][i]["q"] for i in report["ranking"]]
     assert q == sorted(q, reverse=True)  # maximizing: best first

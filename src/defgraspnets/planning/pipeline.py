@@ -126,6 +126,7 @@ def plan_grasps(
         "youngs_modulus_pa": planner.youngs_modulus,
         "force_n": planner.force,
         "objective": {"name": obj.name, "terms": obj.terms, "sense": obj.sense, "units": obj.units},
+        "displacement_target": planner.predictor.displacement_target,
         "device": str(planner.device),
         "timings": timings,
         "samples": [
