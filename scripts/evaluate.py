@@ -41,6 +41,12 @@ def load(ckpt_path: str, cfg: DictConfig, device):
         if value is not None:
             dm_hparams[key] = value
     module = DefGraspNetsModule.load_from_checkpoint(path, map_location="cpu").to(device).eval()
+    target = dm_hparams.get("displacement", "total")
+    if target != module.displacement_target:
+        raise ValueError(
+            f"{path}: data.displacement={target} differs from the "
+            f"{module.displacement_target!r} displacement the model predicts"
+        )
     return module, GraspDataModule(**dm_hparams)
 
 
@@ -76,7 +82,13 @@ def evaluate_checkpoint(ckpt_path: str, cfg: DictConfig, out_dir: Path) -> tuple
             stress, disp = net.fields(batch)
             metrics.update(stress, disp, batch)
     split = dm.split_name
-    level = {"split": split, "checkpoint": str(ckpt_path), **metrics.compute()}
+    # which field "deformation" is: the total displacement or the one without the object's rigid motion
+    level = {
+        "split": split,
+        "displacement_target": module.displacement_target,
+        "checkpoint": str(ckpt_path),
+        **metrics.compute(),
+    }
 
     # Table 7.1: per test object, with its Chamfer distance to the nearest training object
     samples = {

@@ -105,6 +105,7 @@ def test_report_writers(tmp_path):
     rows = [
         {
             "split": "unseen_E",
+            "displacement_target": "total",
             "samples": 3,
             "tau_s": 0.5,
             "tau_d": float("nan"),
@@ -113,6 +114,6 @@ def test_report_writers(tmp_path):
         }
     ]
     text = markdown_table(rows)
-    assert text.splitlines()[2] == "| unseen_E | 3 | 0.50 | n/a | 1 | 0.25 |"
+    assert text.splitlines()[2] == "| unseen_E | total | 3 | 0.50 | n/a | 1 | 0.25 |"
     write_json(tmp_path / "r.json", {"rows": rows})
     assert '"tau_d": null' in (tmp_path / "r.json").read_text()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 import os
 import subprocess
 import sys
@@ -137,9 +138,24 @@ def test_evaluate_script(first_run, data_root):
     )
     assert r.returncode == 0, r.stderr[-4000:]
     text = (out / "results.md").read_text()
-    assert "| unseen_grasps |" in text and "τ_s" in text and "d_C [mm]" in text
-    assert (out / "results.json").exists()
+    assert "| unseen_grasps | rigid_removed |" in text and "τ_s" in text and "d_C [mm]" in text
+    level = json.loads((out / "results.json").read_text())["levels"][0]
+    assert level["displacement_target"] == "rigid_removed"
     assert (out / "fields_unseen_grasps_0_stress.png").stat().st_size > 10_000
+
+
+def test_evaluate_refuses_another_displacement_target(first_run, data_root):
+    r = _run(
+        "scripts/evaluate.py",
+        f"ckpt_path={first_run}/checkpoints/last.ckpt",
+        f"hydra.run.dir={data_root}/eval_total",
+        "+data.displacement=total",
+        "plots=0",
+        "extras.print_config=false",
+        cwd=data_root,
+    )
+    assert r.returncode != 0
+    assert "data.displacement=total differs from the 'rigid_removed' displacement" in r.stderr
 
 
 @pytest.mark.slow

@@ -15,6 +15,7 @@ __all__ = ["LEVEL_COLUMNS", "OBJECT_COLUMNS", "markdown_table", "plot_fields", "
 # (key, header, format)
 LEVEL_COLUMNS = (
     ("split", "Generalization level", "{}"),
+    ("displacement_target", "Displacement", "{}"),
     ("samples", "Test samples", "{:d}"),
     ("tau_s", "τ_s ↑", "{:.2f}"),
     ("tau_d", "τ_d ↑", "{:.2f}"),
