@@ -41,12 +41,7 @@ def load(ckpt_path: str, cfg: DictConfig, device):
         if value is not None:
             dm_hparams[key] = value
     module = DefGraspNetsModule.load_from_checkpoint(path, map_location="cpu").to(device).eval()
-    target = dm_hparams.get("displacement", "total")
-    if target != module.displacement_target:
-        raise ValueError(
-            f"{path}: data.displacement={target} differs from the "
-            f"{module.displacement_target!r} displacement the model predicts"
-        )
+    module.use_displacement_target(dm_hparams.get("displacement", "total"))
     return module, GraspDataModule(**dm_hparams)
 
 

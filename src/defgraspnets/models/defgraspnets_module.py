@@ -169,13 +169,7 @@ class DefGraspNetsModule(LightningModule):
                     )
             target = getattr(dm, "displacement", None)
             if target is not None:
-                if self._displacement_target is None:
-                    self._displacement_target = str(target)
-                elif self._displacement_target != target:
-                    raise ValueError(
-                        f"data.displacement={target} differs from the {self._displacement_target!r} "
-                        "displacement target the model was trained on"
-                    )
+                self.use_displacement_target(str(target))
             if self.hparams.prediction == "multi_step" and getattr(dm, "ramp_stride", None) is None:
                 raise ValueError(
                     "model.prediction=multi_step needs data.ramp_stride (steps between the previous "
@@ -304,18 +298,26 @@ class DefGraspNetsModule(LightningModule):
         motion removed, in its co-moving frame; see :mod:`defgraspnets.data.dataset`)."""
         return self._displacement_target or "total"
 
+    def use_displacement_target(self, target: str) -> None:
+        """Take the data's displacement target (``data.displacement``) if the model has none yet, else
+        require the same one (resuming, testing or evaluating a checkpoint on data of another target)."""
+        if self._displacement_target is None:
+            self._displacement_target = target
+        elif self._displacement_target != target:
+            raise ValueError(
+                f"data.displacement={target} differs from the {self._displacement_target!r} displacement "
+                "target of the model"
+            )
+
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         checkpoint["displacement_target"] = self.displacement_target
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
-        saved = checkpoint.get("displacement_target", "total")
         # resuming (train.py ckpt_path=...): setup() has already taken the datamodule's target
-        if self._displacement_target is not None and self._displacement_target != saved:
-            raise ValueError(
-                f"data.displacement={self._displacement_target} differs from the {saved!r} displacement "
-                "target of the checkpoint"
-            )
-        self._displacement_target = saved
+        data_target, self._displacement_target = self._displacement_target, None
+        self.use_displacement_target(checkpoint.get("displacement_target", "total"))
+        if data_target is not None:
+            self.use_displacement_target(data_target)
 
     @property
     def contact_radius_m(self) -> float:

@@ -157,10 +157,9 @@ class DefGraspNetsPredictor:
             backward (gradients with respect to the inputs, e.g. the grasp pose: the predictor's weights are
             frozen). ``None`` (default): on where the kernels run (Triton, CUDA, ``precision="bf16"``).
             ``True`` where they cannot run is an error.
-
-    ``displacement_target``: what the predicted displacement is, ``"total"`` or ``"rigid_removed"`` (set
-    from the checkpoint by :meth:`from_checkpoint`; see
-    :attr:`~defgraspnets.models.defgraspnets_module.DefGraspNetsModule.displacement_target`).
+        displacement_target: what the predicted displacement is, ``"total"`` or ``"rigid_removed"``
+            (:meth:`from_checkpoint` takes it from the checkpoint; see
+            :attr:`~defgraspnets.models.defgraspnets_module.DefGraspNetsModule.displacement_target`).
 
     ``timer``: an optional callable ``timer(stage)`` returning a context manager (e.g.
     :class:`defgraspnets.planning.timing.StageTimer`) wrapped around the stages ``fingers``, ``graph``,
@@ -179,6 +178,7 @@ class DefGraspNetsPredictor:
         static_shapes: bool | None = None,
         share_object: bool = True,
         fused_message_passing: bool | None = None,
+        displacement_target: str = "total",
     ):
         if not net.normalized:
             raise ValueError("the network has no normalization statistics (not trained)")
@@ -213,7 +213,7 @@ class DefGraspNetsPredictor:
                 network.compile(**options)
         self.contact_radius = float(contact_radius)
         self.contact_backend = contact_backend
-        self.displacement_target = "total"
+        self.displacement_target = displacement_target
         self.timer = None
         self._objects: dict[int, tuple[object, ObjectTemplate]] = {}
         self._on_device: dict[int, tuple[object, object]] = {}
@@ -235,9 +235,8 @@ class DefGraspNetsPredictor:
         if not path.exists():
             raise FileNotFoundError(f"checkpoint not found: {path}")
         module = DefGraspNetsModule.load_from_checkpoint(path, map_location="cpu")
-        predictor = cls(module.net, module.contact_radius_m, device, **kwargs)
-        predictor.displacement_target = module.displacement_target
-        return predictor
+        kwargs.setdefault("displacement_target", module.displacement_target)
+        return cls(module.net, module.contact_radius_m, device, **kwargs)
 
     @property
     def dtype(self) -> torch.dtype:
