@@ -446,3 +446,50 @@ def test_friction_stick_slip_keeps_the_load_at_slip():
         eq = solver.solve(body_load=fem.BodyLoad(gravity=(2 * mu * normal / mesh.mass(1000.0), 0, 0)))
         assert eq.status[0] == fem.SolveStatus.ESCAPED
         assert eq.load_fraction[0] == pytest.approx(0.5, abs=0.02)
+
+
+def test_pinched_vertices_are_opposing_pushes_on_one_vertex():
+    from defgraspnets.fem.solver import pinched_vertices
+
+    z = np.array([0.0, 0.0, 1.0])
+    x = np.array([1.0, 0.0, 0.0])
+    # (B=3, S=2, K=2): two fingers pushing vertex 0 from both sides; a finger and a floor at a corner
+    # (orthogonal pushes); a near-touch of the second finger at 1e-6 of the first's force
+    fn = np.array([[[1.5, 1.5], [1.0, 0.0]], [[2.0, 1.0], [0.0, 0.0]], [[3.0, 3e-6], [0.0, 0.0]]])
+    nrm = np.zeros((3, 2, 2, 3))
+    nrm[:, :, 0], nrm[:, :, 1] = z, -z
+    nrm[1, :, 1] = x
+    pinched = pinched_vertices(fn, nrm)
+    assert pinched.tolist() == [[True, False], [False, False], [False, False]]
+
+
+def test_a_finger_that_slips_between_vertices_is_not_an_equilibrium():
+    """A 60 x 40 x 20 mm fTetWild cuboid (262 vertices, ~8 mm apart) squeezed through its 20 mm thickness:
+    with 5 N load increments, Newton once found a state where the left pad had passed between the object's
+    vertices and both pads pressed the same two top-face vertices from opposite sides -- forces cancelling,
+    the object unstressed and moved 10 mm, reported converged. The solver now rejects such states (retrying
+    with smaller increments): every step is a stressed equilibrium without a vertex shared by both pads."""
+    from pathlib import Path
+
+    from defgraspnets.grasp.metrics import rigid_removed_displacement
+    from defgraspnets.grasp.sampler import sample_antipodal_grasps
+    from defgraspnets.grasp.squeeze import make_squeeze_solver, squeeze_ramp
+
+    mesh = fem.TetMesh.load(Path(__file__).parent / "data" / "cuboid_60x40x20.vtu")
+    grasps = sample_antipodal_grasps(mesh, num_grasps=12, seed=7)[np.array([0, 7])]
+    np.testing.assert_allclose(np.abs(grasps.axes[1]), [0, 0, 1], atol=0.02)  # through the 20 mm
+    ramp = squeeze_ramp(make_squeeze_solver(mesh, grasps, fem.Material(1e6, 0.3, 1000.0), 0.7), 15.0, 3)
+    for eq in ramp:
+        eq.require_converged()
+        for g in range(2):
+            left = set(eq.contact_vertices("left_finger", g).tolist())
+            right = set(eq.contact_vertices("right_finger", g).tolist())
+            assert left and right and not left & right
+    last = ramp[-1]
+    np.testing.assert_allclose(last.dof_force["grip"], 15.0, rtol=1e-3)
+    assert np.all(last.strain_energy > 0)
+    for g in range(2):
+        moved = mesh.points + last.displacement[g]
+        deformation = np.linalg.norm(rigid_removed_displacement(mesh.points, moved), axis=-1)
+        assert deformation.max() > 1e-4  # 0.47-0.93 mm at 15 N (the pinched state: 0)
+        assert np.abs(last.displacement[g]).max() < 2e-3  # no 10 mm jump

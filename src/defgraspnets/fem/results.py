@@ -19,6 +19,8 @@ class SolveStatus(IntEnum):
     NOT_CONVERGED = 1  # Newton failed even at the smallest load increment
     ESCAPED = 2  # no equilibrium exists: the object ran away (slip, lost contact, unsupported load)
     NONFINITE = 3  # NaN or inf appeared
+    # (4 is the grasp generator's STATUS_INVERTED)
+    PINCHED = 5  # one vertex pressed from opposite sides by two bodies: a body passed between the vertices
 
 
 @dataclass

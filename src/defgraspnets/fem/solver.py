@@ -299,6 +299,26 @@ def _per_problem(value, batch_size: int, name: str) -> np.ndarray:
     return v
 
 
+def pinched_vertices(normal_force: np.ndarray, normal: np.ndarray, max_cosine: float = -0.5) -> np.ndarray:
+    """(B, S) True where a surface vertex is pressed by two bodies whose normal forces on it oppose
+    (cosine of the angle between them below ``max_cosine``), both above 1e-3 of the problem's largest.
+
+    ``normal_force``: (B, S, K) normal contact force of each body on each surface vertex [N];
+    ``normal``: (B, S, K, 3) unit directions of those forces. A volumetric object cannot be squeezed at a
+    single vertex from both sides: such an equilibrium is a rigid body that slipped between the object's
+    vertices (vertex-based contact does not see the edges and faces), with the two forces cancelling and
+    the object unstressed. The solver flags it :attr:`SolveStatus.PINCHED`.
+    """
+    K = normal_force.shape[2]
+    pressed = normal_force > 1e-3 * normal_force.max(axis=(1, 2), keepdims=True).clip(min=1e-300)
+    out = np.zeros(normal_force.shape[:2], dtype=bool)
+    for a in range(K):
+        for b in range(a + 1, K):
+            cosine = np.einsum("bsi,bsi->bs", normal[:, :, a], normal[:, :, b])
+            out |= pressed[:, :, a] & pressed[:, :, b] & (cosine < max_cosine)
+    return out
+
+
 class QuasiStaticSolver:
     """Quasi-static FEM solver for B problems sharing one tet mesh and one set of rigid bodies.
 
@@ -1122,6 +1142,17 @@ class QuasiStaticSolver:
             device=self.device,
         )
 
+    def _pinched(self, mask: np.ndarray) -> np.ndarray:
+        """(B,) problems in ``mask`` whose current state has a pinched vertex (:func:`pinched_vertices`)."""
+        B, S, K = self.batch_size, self.num_surface, self.num_bodies
+        if K < 2 or not mask.any():
+            return np.zeros(B, dtype=bool)
+        self._unpack(self._q, self._positions, self._travel)
+        self._contact_state(self._positions, self._travel)
+        fn = self._c_force.numpy().reshape(B, S, K)
+        nrm = self._c_normal.numpy().reshape(B, S, K, 3)
+        return mask & pinched_vertices(fn, nrm).any(axis=1)
+
     def _friction_inconsistent(self, mask: np.ndarray, tol: np.ndarray) -> np.ndarray:
         """Problems in ``mask`` whose friction capacities, computed from lagged normal forces, are not
         consistent with their current normal forces: some contact's capacity error ``mu (|N - N_lag| +
@@ -1339,8 +1370,12 @@ class QuasiStaticSolver:
             newton_total += it
             linear_total += lin
             residual = np.where(todo, res, residual)
-            good = todo & ok
-            bad = todo & ~ok
+            # an equilibrium in which a body pressed through the object between its vertices is no answer:
+            # retried with smaller increments like a failed one, flagged PINCHED if it persists
+            pinched = self._pinched(todo & ok)
+            fail_status[pinched] = SolveStatus.PINCHED
+            good = todo & ok & ~pinched
+            bad = todo & ~good
             if good.any():
                 self._commit(good, change * (lam_try - lam_done)[:, None])
                 step = lam_try - lam_done
