@@ -86,6 +86,11 @@ def test_generalization_splits(shards):
     assert train and test and not train & test  # no grasp on both sides
     assert {n for n, *_ in test} == names  # every object has unseen grasps
     assert not _keys(s1.train, shards) & _keys(s1.val, shards)
+    # validation ranks grasps: two or more of every object with four or more training grasps
+    for name in names:
+        kept = {k for k in _keys(np.concatenate([s1.train, s1.val]), shards) if k[0] == name}
+        held = {k for k in _keys(s1.val, shards) if k[0] == name}
+        assert len(held) >= 2 or len(kept) < 4, (name, len(held), len(kept))
 
     s2 = make_split(infos, "unseen_E")
     e = {

@@ -13,7 +13,8 @@ Entries are solved squeezes ``(shard, k, g)``; each split keeps all ramp steps o
                       on small groups of objects through ``train_objects``.
 
 Validation is carved from the training entries at the grasp level (``val_fraction`` of each object's
-training grasps), so ``val`` always measures level-1 generalization and ``test`` the chosen level.
+training grasps, and at least two of an object with four or more, so that the validation Kendall tau has
+grasps to rank), so ``val`` always measures level-1 generalization and ``test`` the chosen level.
 Randomness is seeded per object/category name (``seed`` and a CRC of the name), so adding an object does
 not reshuffle the others.
 """
@@ -100,8 +101,16 @@ def _solved(infos: Sequence[ShardInfo], shards: Sequence[int]) -> np.ndarray:
     return np.concatenate(parts).astype(np.int64) if parts else np.zeros((0, 3), np.int64)
 
 
-def _grasp_holdout(entries: np.ndarray, infos: Sequence[ShardInfo], fraction: float, seed: int, what: str):
-    """Split entries by grasp ``(shard, g)`` per object; returns (kept, held_out)."""
+def _grasp_holdout(
+    entries: np.ndarray,
+    infos: Sequence[ShardInfo],
+    fraction: float,
+    seed: int,
+    what: str,
+    minimum: int = 1,
+):
+    """Split entries by grasp ``(shard, g)`` per object; returns (kept, held_out). At least ``minimum``
+    grasps are held out of an object that keeps as many."""
     held = np.zeros(len(entries), dtype=bool)
     if fraction <= 0 or not len(entries):
         return entries, entries[held]
@@ -112,9 +121,10 @@ def _grasp_holdout(entries: np.ndarray, infos: Sequence[ShardInfo], fraction: fl
         if len(grasps) < 2:
             log.warning("object %s has %d %s grasp(s): none held out", name, len(grasps), what)
             continue
-        pick = grasps[
-            _rng(seed, f"{what}/{name}").permutation(len(grasps))[: _count(len(grasps), fraction, what)]
-        ]
+        count = _count(len(grasps), fraction, what)
+        if len(grasps) >= 2 * minimum:
+            count = max(count, minimum)
+        pick = grasps[_rng(seed, f"{what}/{name}").permutation(len(grasps))[:count]]
         key = entries[:, 0] * 1_000_000 + entries[:, 2]
         held |= on & np.isin(key, pick[:, 0] * 1_000_000 + pick[:, 1])
     return entries[~held], entries[held]
@@ -206,7 +216,8 @@ def make_split(
             )
         train = _solved(infos, [s for n in train_names for s in shards_of[n]])
         test = _solved(infos, [s for n in test_names for s in shards_of[n]])
-    train, val = _grasp_holdout(train, infos, val_fraction, seed, "val")
+    # two grasps at least per object, so that validation ranks grasps (tau needs two per object, E and step)
+    train, val = _grasp_holdout(train, infos, val_fraction, seed, "val", minimum=2)
     for part, arr in (("train", train), ("test", test)):
         if not len(arr):
             raise ValueError(f"split {split!r} leaves the {part} part empty")
