@@ -56,7 +56,9 @@ def main(cfg: DictConfig) -> None:
         target_nodes=cfg.target_nodes,
         mesher=cfg.mesher,
         solver_options=squeeze_solver_options(
-            linear_solver=cfg.linear_solver, max_newton_per_solve=cfg.max_newton_per_step
+            linear_solver=cfg.linear_solver,
+            max_newton_per_solve=cfg.max_newton_per_step,
+            **({} if cfg.max_step_fraction is None else {"max_step_fraction": cfg.max_step_fraction}),
         ),
         reject_inverted=cfg.reject_inverted,
         overwrite=cfg.overwrite,

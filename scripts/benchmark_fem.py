@@ -43,7 +43,7 @@ def main(cfg: DictConfig) -> None:
     grasps = sample_antipodal_grasps(mesh, num_grasps=cfg.num_grasps, seed=cfg.seed)
     material = fem.Material(cfg.youngs_modulus, cfg.poisson_ratio, cfg.density, model=cfg.material_model)
     overrides = {"linear_solver": cfg.linear_solver, "max_newton_per_solve": cfg.max_newton_per_step}
-    for key in ("max_factor_reuse", "contact_smoothing", "relag_friction_on_retry"):
+    for key in ("max_factor_reuse", "contact_smoothing", "relag_friction_on_retry", "max_step_fraction"):
         if cfg[key] is not None:
             overrides[key] = cfg[key]
     options = squeeze_solver_options(**overrides)

@@ -179,7 +179,10 @@ def test_friction_is_relagged_from_the_kth_failed_attempt_of_a_load_step(first_a
 
     mesh = fem.TetMesh.load(Path(__file__).parent / "data" / "cone_rb25_rt10_h60_ftetwild.vtu")
     grasps = sample_antipodal_grasps(mesh, num_grasps=12, seed=0)[[0, 10]]  # #10 fails increments repeatedly
-    options = squeeze_solver_options(linear_solver="dense", relag_friction_on_retry=first_attempt)
+    # with the engine's 10 % step cap: with the data path's 1 %, #10 fails no increment twice
+    options = squeeze_solver_options(
+        linear_solver="dense", relag_friction_on_retry=first_attempt, max_step_fraction=0.1
+    )
     material = fem.Material(1e7, 0.3, 1000.0, model="neohookean")
     solver = make_squeeze_solver(mesh, grasps, material, 0.7, device="cpu", options=options)
     events, newton, solve = [], solver._newton, solver.solve
@@ -206,3 +209,46 @@ def test_friction_is_relagged_from_the_kth_failed_attempt_of_a_load_step(first_a
             relagged += int(relag[b])
             failed[b] += int(not ok[b])
     assert relagged > 0  # attempts failed often enough for the re-lag to start
+
+
+def test_pads_on_a_curved_surface_hold_the_object_by_friction_from_the_first_step():
+    """A 3 MPa fTetWild capsule (r = 20 mm, 343 vertices) and two antipodal grasps whose pads first touch
+    one vertex each, offset across the curved side: the pad forces form a couple that only friction can
+    hold, and no friction exists before the first normal forces do. With the squeeze path's Newton step cap
+    (1 % of the object's diagonal) both grasps converge at 1.5 N with the object held in place by friction
+    (rigid turn ~0.01 deg, shift = the pads' gap, ~0.3 mm), Coulomb's law obeyed; with the engine's 10 %
+    cap the object rolls freely in the first iterations: one grasp spins out (ESCAPED), the other converges
+    after a frictionless roll of ~16 deg."""
+    from pathlib import Path
+
+    from defgraspnets.grasp.metrics import best_rigid_transform
+
+    mesh = fem.TetMesh.load(Path(__file__).parent / "data" / "capsule_r20_l40_ftetwild.vtu")
+    grasps = sample_antipodal_grasps(mesh, num_grasps=16, seed=0)[[6, 14]]
+    mu = 0.7
+    material = fem.Material(3e6, 0.3, 1000.0, model="neohookean")
+
+    def first_step(**overrides):
+        options = squeeze_solver_options(linear_solver="direct", **overrides)
+        solver = make_squeeze_solver(mesh, grasps, material, mu, device="cpu", options=options)
+        eq = squeeze_ramp(solver, 1.5, 1)[-1]
+        turns = []
+        for u in eq.displacement:
+            R, t = best_rigid_transform(mesh.points, mesh.points + u)
+            turns.append((np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))), np.linalg.norm(t)))
+        return eq, np.array(turns)
+
+    eq, turns = first_step()
+    assert squeeze_solver_options().max_step_fraction == 0.01
+    eq.require_converged()
+    assert np.all(turns[:, 0] < 0.1) and np.all(turns[:, 1] < 1e-3)  # [deg], [m]
+    assert np.all(eq.von_mises.max(axis=1) > 1e3)  # squeezed, not pushed through
+    for name in FINGER_NAMES:
+        normal = eq.contact_normal_force[name]
+        tangential = np.linalg.norm(eq.contact_friction_force[name], axis=-1)
+        assert np.all(tangential <= mu * normal * (1 + 1e-9) + 1e-12)
+        assert normal.sum(axis=1) == pytest.approx(0.75, rel=1e-4)
+
+    loose, loose_turns = first_step(max_step_fraction=0.1)
+    assert loose.status[0] == fem.SolveStatus.ESCAPED
+    assert loose.status[1] == fem.SolveStatus.CONVERGED and loose_turns[1, 0] > 5.0
