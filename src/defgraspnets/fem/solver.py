@@ -134,6 +134,11 @@ class SolverOptions:
             against an edge or corner: the object's rigid modes are otherwise free and Newton's steps
             along them unbounded). The price is a spurious force ``c_i (u_i - u_ref_i)`` at equilibrium;
             its largest value is reported as ``Equilibrium.stabilization_force`` (compare it with the loads).
+        stabilization_release: with ``stabilization`` > 0, a load increment that converged stabilized is
+            continued by Newton without the springs, from that state, and accepted only if this converges
+            (else it is bisected like any failed increment): the springs guide the path while the contacts
+            establish themselves (as a static FE code's contact stabilization, ramped off at the end of the
+            step) and the answer is an exact equilibrium, ``stabilization_force`` 0.
         exact_hessian: once a problem's Newton step is accepted in full and lowers the residual, its next
             iterations use the exact elastic Hessian (signed element eigenvalues) instead of the PSD-projected
             one: near a stable equilibrium the assembled Hessian is positive definite even where compressed
@@ -199,6 +204,7 @@ class SolverOptions:
     escape_fraction: float = 0.5
     regularization: float = 1e-10
     stabilization: float = 0.0
+    stabilization_release: bool = False
     exact_hessian: bool = True
     max_factor_reuse: int | None = None
     factor_reuse_contraction: float = 0.25
@@ -610,10 +616,12 @@ class QuasiStaticSolver:
         N, D = self.mesh.num_vertices, self.num_dofs
         shift = np.zeros((self.batch_size, self.rows_per_problem, 3))
         scale = self.options.regularization * self._youngs_np[:, None] * self.mesh.vertex_size[None, :]
+        self._regularization_np = scale
         shift[:, :N, :] = scale[:, :, None]
         stab = self.options.stabilization * self._youngs_np[:, None] * self.mesh.vertex_size[None, :]
         shift[:, :N, :] += stab[:, :, None]
         self._stabilization = wp.array(stab.reshape(-1), dtype=wp.float64, device=dev)
+        self._stabilization_np = stab  # (B, N) spring constants [N/m], for _stabilize()
         if D:
             shift[:, N:, 0] = self.options.regularization * self._youngs_np[:, None] * self.mesh.diameter
         self._diag_shift = wp.array(shift.reshape(-1, 3), dtype=wp.vec3d, device=dev)
@@ -1367,6 +1375,14 @@ class QuasiStaticSolver:
             log.debug("load increment: fractions %s -> %s", lam_done[todo][:4], lam_try[todo][:4])
             self._start_increment(change * (lam_try - lam_done)[:, None], lam_try, start, end, todo)
             ok, fail_status, it, lin, res = self._newton(todo, relag_every)
+            if o.stabilization > 0 and o.stabilization_release and (todo & ok).any():
+                # continue the stabilized equilibria without the springs; only an exact one is accepted
+                release = todo & ok
+                self._stabilize(~release)
+                ok_r, status_r, it_r, lin_r, res_r = self._newton(release, relag_every)
+                self._stabilize(np.ones(B, dtype=bool))
+                ok[release], fail_status[release] = ok_r[release], status_r[release]
+                it, lin, res = it + it_r, lin + lin_r, np.where(release, res_r, res)
             newton_total += it
             linear_total += lin
             residual = np.where(todo, res, residual)
@@ -1458,6 +1474,15 @@ class QuasiStaticSolver:
         return out
 
     # ------------------------------------------------------------------ Newton
+    def _stabilize(self, on: np.ndarray) -> None:
+        """Switch the increment stabilization springs on or off per problem (energy, gradient, Hessian)."""
+        N = self.mesh.num_vertices
+        stab = self._stabilization_np * on[:, None]
+        self._stabilization.assign(stab.reshape(-1))
+        shift = self._diag_shift_base
+        shift[:, :N, :] = (self._regularization_np + stab)[:, :, None]
+        self._diag_shift.assign(shift.reshape(-1, 3))
+
     def _newton(self, mask: np.ndarray, relag_every: np.ndarray):
         """Newton iterations on the masked problems at their current loads (``relag_every``: problems whose
         friction normal forces are re-lagged at every iteration, ``SolverOptions.relag_friction_on_retry``).

@@ -141,6 +141,15 @@ def squeeze_solver_options(**overrides) -> fem.SolverOptions:
     ramps converged (capsule_r20_l40 21 -> 62 of 64, cylinder_r25_h100 32 -> 63, lemon 34 -> 64; no
     ESCAPED or PINCHED ramp is left), 250 -> 283 s with warm kernel caches: the same time per converged
     ramp (0.27 s).
+
+    Stiff curved first contacts can also crawl: the Newton step is dominated by the object's free rigid
+    modes, so the cap shrinks its useful part, and a grasp spends its 200 iterations in the first step
+    (cylinder_r20_h40 at 10 MPa: 8 of 16 fail so). Released increment stabilization
+    (``stabilization=1e-4, stabilization_release=True``: springs guide each increment, then Newton
+    finishes without them) converged 89 instead of 70 of 96 ramps on six hard (object, modulus) pairs
+    (2-core CPU, same time), but is not the default: where both converge it ends elsewhere on the
+    frictional path (median 1 % of the displacement, in some grasps another equilibrium, up to 62 % in
+    stress), and which path a data set should follow is not settled.
     """
     return fem.SolverOptions(
         **{
