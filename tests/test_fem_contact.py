@@ -92,6 +92,8 @@ def test_released_stabilization_returns_the_unstabilized_equilibrium():
     assert np.abs(uz["kept"] - uz["plain"]).max() > 1e-3 * scale
     assert np.abs(uz["released"] - uz["plain"]).max() < 1e-5 * scale
     np.testing.assert_allclose(released.von_mises[0], plain.von_mises[0], rtol=1e-5)
+    with pytest.raises(ValueError, match="stabilization_release needs stabilization > 0"):
+        fem.SolverOptions(stabilization_release=True)
 
 
 def test_released_stabilization_establishes_stiff_curved_first_contacts():

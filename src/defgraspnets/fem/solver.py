@@ -218,6 +218,10 @@ class SolverOptions:
             )
         if not (np.isfinite(self.stabilization) and self.stabilization >= 0):
             raise ValueError(f"SolverOptions.stabilization must be >= 0, got {self.stabilization!r}")
+        if self.stabilization_release and self.stabilization == 0:
+            raise ValueError(
+                "SolverOptions.stabilization_release needs stabilization > 0 (no springs to release)"
+            )
         if self.max_newton_per_solve < 0:
             raise ValueError(
                 f"SolverOptions.max_newton_per_solve must be >= 0, got {self.max_newton_per_solve!r}"
@@ -1379,8 +1383,10 @@ class QuasiStaticSolver:
                 # continue the stabilized equilibria without the springs; only an exact one is accepted
                 release = todo & ok
                 self._stabilize(~release)
+                self.system.forget_factors(release)  # factored with the springs' diagonal
                 ok_r, status_r, it_r, lin_r, res_r = self._newton(release, relag_every)
                 self._stabilize(np.ones(B, dtype=bool))
+                self.system.forget_factors(release)
                 ok[release], fail_status[release] = ok_r[release], status_r[release]
                 it, lin, res = it + it_r, lin + lin_r, np.where(release, res_r, res)
             newton_total += it
