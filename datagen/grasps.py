@@ -59,6 +59,8 @@ def main(cfg: DictConfig) -> None:
             linear_solver=cfg.linear_solver,
             max_newton_per_solve=cfg.max_newton_per_step,
             **({} if cfg.max_step_fraction is None else {"max_step_fraction": cfg.max_step_fraction}),
+            stabilization=cfg.stabilization,
+            stabilization_release=cfg.stabilization_release,
         ),
         reject_inverted=cfg.reject_inverted,
         overwrite=cfg.overwrite,

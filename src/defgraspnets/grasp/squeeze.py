@@ -147,7 +147,9 @@ def squeeze_solver_options(**overrides) -> fem.SolverOptions:
     (cylinder_r20_h40 at 10 MPa: 8 of 16 fail so). Released increment stabilization
     (``stabilization=1e-4, stabilization_release=True``: springs guide each increment, then Newton
     finishes without them) converged 89 instead of 70 of 96 ramps on six hard (object, modulus) pairs
-    (2-core CPU, same time), but is not the default: where both converge it ends elsewhere on the
+    (2-core CPU, same time) and 1130 instead of 1048 of the 1152 ramps above (H100, 387 s against 399 s,
+    both with kernel compilation; ``datagen/grasps.py stabilization=1e-4 stabilization_release=true``),
+    but is not the default: where both converge it ends elsewhere on the
     frictional path (median 1 % of the displacement, in some grasps another equilibrium, up to 62 % in
     stress), and which path a data set should follow is not settled.
     """
