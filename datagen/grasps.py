@@ -58,7 +58,7 @@ def main(cfg: DictConfig) -> None:
         solver_options=squeeze_solver_options(
             linear_solver=cfg.linear_solver,
             max_newton_per_solve=cfg.max_newton_per_step,
-            **({} if cfg.max_step_fraction is None else {"max_step_fraction": cfg.max_step_fraction}),
+            max_step_fraction=cfg.max_step_fraction,
             stabilization=cfg.stabilization,
             stabilization_release=cfg.stabilization_release,
         ),

@@ -42,11 +42,20 @@ def main(cfg: DictConfig) -> None:
     mesh = fem.TetMesh.box(size=size, divisions=tuple(cfg.object.divisions), origin=-size / 2, name="box")
     grasps = sample_antipodal_grasps(mesh, num_grasps=cfg.num_grasps, seed=cfg.seed)
     material = fem.Material(cfg.youngs_modulus, cfg.poisson_ratio, cfg.density, model=cfg.material_model)
-    overrides = {"linear_solver": cfg.linear_solver, "max_newton_per_solve": cfg.max_newton_per_step}
-    for key in ("max_factor_reuse", "contact_smoothing", "relag_friction_on_retry", "max_step_fraction"):
-        if cfg[key] is not None:
-            overrides[key] = cfg[key]
-    options = squeeze_solver_options(**overrides)
+    options = squeeze_solver_options(
+        linear_solver=cfg.linear_solver,
+        max_newton_per_solve=cfg.max_newton_per_step,
+        # null config values keep the squeeze defaults
+        **{
+            key: cfg[key]
+            for key in (
+                "max_factor_reuse",
+                "contact_smoothing",
+                "relag_friction_on_retry",
+                "max_step_fraction",
+            )
+        },
+    )
 
     out = Path(cfg.out)
     out.parent.mkdir(parents=True, exist_ok=True)

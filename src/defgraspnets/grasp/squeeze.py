@@ -57,7 +57,8 @@ def finger_contact_poses(grasps: GraspSet, gripper: ParallelJawGripper = FRANKA_
 
 
 def squeeze_solver_options(**overrides) -> fem.SolverOptions:
-    """Solver settings of the squeeze ramp: the engine's defaults with the C2 contact onset
+    """Solver settings of the squeeze ramp (``overrides``: SolverOptions fields; None keeps the squeeze
+    default, as the entry points' ``null`` config values do): the engine's defaults with the C2 contact onset
     (``contact_smoothing`` = 1e-2 h, as the tactile sensor's). Vertices of a coarse object mesh graze the rim
     of a pad's contact patch; with the plain quadratic penalty Newton then toggles them in and out of contact
     (measured on 8 Franka grasps of a 960-vertex box, 0-15 N in 50 steps on 2 CPU cores: 317 s and up to 850
@@ -153,6 +154,7 @@ def squeeze_solver_options(**overrides) -> fem.SolverOptions:
     frictional path (median 1 % of the displacement, in some grasps another equilibrium, up to 62 % in
     stress), and which path a data set should follow is not settled.
     """
+    overrides = {key: value for key, value in overrides.items() if value is not None}
     return fem.SolverOptions(
         **{
             "max_step_fraction": 0.01,
