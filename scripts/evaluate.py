@@ -60,7 +60,7 @@ def evaluate_checkpoint(ckpt_path: str, cfg: DictConfig, out_dir: Path) -> tuple
     device = torch.device(cfg.device)
     module, dm = load(ckpt_path, cfg, device)
     dm.setup("test")
-    test = dm.datasets["test"]
+    test = dm.datasets[cfg.part]
     idx = np.arange(len(test))
     if cfg.max_samples and len(test) > cfg.max_samples:
         idx = np.unique(np.linspace(0, len(test) - 1, int(cfg.max_samples)).round().astype(int))
@@ -72,11 +72,12 @@ def evaluate_checkpoint(ckpt_path: str, cfg: DictConfig, out_dir: Path) -> tuple
     metrics = FieldMetrics()
     net = module.net
     with torch.no_grad():
-        for batch in tqdm(loader, desc=f"test {dm.split_name}", leave=False):
+        for batch in tqdm(loader, desc=f"{cfg.part} {dm.split_name}", leave=False):
             batch = batch.to(device)
             stress, disp = net.fields(batch)
             metrics.update(stress, disp, batch)
-    split = dm.split_name
+    # a part other than the test part is named in every row and file ("unseen_grasps/train")
+    split = dm.split_name if cfg.part == "test" else f"{dm.split_name}/{cfg.part}"
     # which field "deformation" is: the total displacement or the one without the object's rigid motion
     level = {
         "split": split,
@@ -114,14 +115,14 @@ def evaluate_checkpoint(ckpt_path: str, cfg: DictConfig, out_dir: Path) -> tuple
         shard, k, gi, step = g.sample[0].tolist()
         pts = g.pos[obj].cpu().numpy()
         title = (
-            f"{dm.object_names[int(g.object_id)]}  grasp {gi}  E = {float(g.youngs_modulus):.3g} Pa  "
-            f"F = {float(g.force):.3g} N"
+            f"{dm.object_names[int(g.object_id)]}  ({cfg.part})  grasp {gi}  "
+            f"E = {float(g.youngs_modulus):.3g} Pa  F = {float(g.force):.3g} N"
         )
         plot_fields(
             pts,
             s[obj].cpu().numpy() / 1e3,
             g.stress[obj].cpu().numpy() / 1e3,
-            out_dir / f"fields_{split}_{j}_stress.png",
+            out_dir / f"fields_{split.replace('/', '_')}_{j}_stress.png",
             title,
             "von Mises stress [kPa]",
         )
@@ -129,7 +130,7 @@ def evaluate_checkpoint(ckpt_path: str, cfg: DictConfig, out_dir: Path) -> tuple
             pts,
             d[obj].norm(dim=1).cpu().numpy() * 1e3,
             g.displacement[obj].norm(dim=1).cpu().numpy() * 1e3,
-            out_dir / f"fields_{split}_{j}_deformation.png",
+            out_dir / f"fields_{split.replace('/', '_')}_{j}_deformation.png",
             title,
             "deformation |d| [mm]",
         )
@@ -143,6 +144,8 @@ def main(cfg: DictConfig) -> None:
     ckpts = list(cfg.ckpt_paths or []) + ([cfg.ckpt_path] if cfg.ckpt_path else [])
     if not ckpts:
         raise ValueError("give ckpt_path=<file> or ckpt_paths=[...]")
+    if cfg.part not in ("test", "val", "train"):
+        raise ValueError(f"part={cfg.part!r}: choose test, val or train")
     out_dir = Path(cfg.output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     levels, objects = [], []

@@ -8,7 +8,7 @@ import torch
 from scipy.stats import kendalltau
 
 from defgraspnets.eval.chamfer import chamfer_distance, nearest_training_object, surface_samples
-from defgraspnets.eval.metrics import FieldMetrics, grouped_kendall_tau, kendall_tau
+from defgraspnets.eval.metrics import FieldMetrics, grouped_kendall_tau, kendall_tau, kendall_tau_interval
 from defgraspnets.eval.report import markdown_table, write_json
 from defgraspnets.fem.mesh import TetMesh
 from defgraspnets.models.graph import NODE_FINGER, NODE_SURFACE, GraspGraph
@@ -41,6 +41,46 @@ def test_grouped_kendall_tau_averages_groups():
     true = np.array([1, 2, 3, 3, 2, 1, 5.0])
     tau, n = grouped_kendall_tau(groups[:, None], pred, true)
     assert n == 2 and tau == pytest.approx(0.0)
+
+
+def _clustered_rankings(objects: int, groups_per_object: int = 4):
+    """Rows of 3-grasp groups; even objects ranked right (tau 1), odd ones reversed (tau -1)."""
+    groups, clusters, pred, true = [], [], [], []
+    for o in range(objects):
+        for g in range(groups_per_object):
+            for i in range(3):
+                groups.append((o, g))
+                clusters.append(o)
+                true.append(float(i))
+                pred.append(float(i if o % 2 == 0 else 2 - i))
+    return np.array(groups), np.array(clusters), np.array(pred), np.array(true)
+
+
+def test_kendall_tau_interval_resamples_objects_not_groups():
+    groups, clusters, pred, true = _clustered_rankings(32)
+    tau, n = grouped_kendall_tau(groups, pred, true)
+    assert n == 128 and tau == pytest.approx(0.0)
+    low, high = kendall_tau_interval(groups, clusters, pred, true)
+    # object means are +-1 (variance 1): the mean over 32 objects has standard error 1/sqrt(32); resampling
+    # the 128 groups as if independent would give half that
+    assert low < tau < high
+    assert high - low == pytest.approx(2 * 1.96 / np.sqrt(32), rel=0.15)
+    # four times the objects: half the width
+    low4, high4 = kendall_tau_interval(*_clustered_rankings(128))
+    assert (high - low) / (high4 - low4) == pytest.approx(2.0, rel=0.2)
+
+
+def test_kendall_tau_interval_edge_cases():
+    groups, clusters, pred, true = _clustered_rankings(6)
+    agree = np.array(true)  # every object ranked right: no spread to resample
+    assert kendall_tau_interval(groups, clusters, agree, true) == pytest.approx((1.0, 1.0))
+    one = clusters == 0
+    assert np.all(np.isnan(kendall_tau_interval(groups[one], clusters[one], pred[one], true[one])))
+    assert kendall_tau_interval(groups, clusters, pred, true, seed=3) == kendall_tau_interval(
+        groups, clusters, pred, true, seed=3
+    )
+    with pytest.raises(ValueError, match="level must lie in"):
+        kendall_tau_interval(groups, clusters, pred, true, level=95)
 
 
 def _batch(stress, disp, obj_nodes=3):
@@ -109,11 +149,15 @@ def test_report_writers(tmp_path):
             "samples": 3,
             "tau_s": 0.5,
             "tau_d": float("nan"),
+            "tau_s_ci_low": 0.25,
+            "tau_s_ci_high": 0.75,
+            "tau_d_ci_low": float("nan"),
+            "tau_d_ci_high": float("nan"),
             "mae_stress_kpa": 1.0,
             "mae_deformation_mm": 0.25,
         }
     ]
     text = markdown_table(rows)
-    assert text.splitlines()[2] == "| unseen_E | total | 3 | 0.50 | n/a | 1 | 0.25 |"
+    assert text.splitlines()[2] == "| unseen_E | total | 3 | 0.50 | n/a | [0.25, 0.75] | n/a | 1 | 0.25 |"
     write_json(tmp_path / "r.json", {"rows": rows})
     assert '"tau_d": null' in (tmp_path / "r.json").read_text()

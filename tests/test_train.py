@@ -145,6 +145,40 @@ def test_evaluate_script(first_run, data_root):
     assert (out / "fields_unseen_grasps_0_stress.png").stat().st_size > 10_000
 
 
+def test_evaluate_script_on_the_training_part(first_run, data_root):
+    """part=train evaluates the training grasps (every step with data.train_steps=null) and says so."""
+    runs = {}
+    for part in ("test", "train"):
+        out = data_root / f"eval_part_{part}"
+        r = _run(
+            "scripts/evaluate.py",
+            f"ckpt_path={first_run}/checkpoints/last.ckpt",
+            f"hydra.run.dir={out}",
+            f"part={part}",
+            "data.train_steps=null",
+            "plots=1",
+            "chamfer_samples=64",
+            "extras.print_config=false",
+            cwd=data_root,
+        )
+        assert r.returncode == 0, r.stderr[-4000:]
+        runs[part] = json.loads((out / "results.json").read_text())["levels"][0]
+    assert runs["test"]["split"] == "unseen_grasps"
+    assert runs["train"]["split"] == "unseen_grasps/train"
+    # 3 grasps x 2 steps per ramp: the training part holds more samples than the one-step test part
+    assert runs["train"]["samples"] > runs["test"]["samples"] > 0
+    assert (data_root / "eval_part_train" / "fields_unseen_grasps_train_0_stress.png").exists()
+    bad = _run(
+        "scripts/evaluate.py",
+        f"ckpt_path={first_run}/checkpoints/last.ckpt",
+        f"hydra.run.dir={data_root}/eval_part_bad",
+        "part=training",
+        "extras.print_config=false",
+        cwd=data_root,
+    )
+    assert bad.returncode != 0 and "part='training': choose test, val or train" in bad.stderr
+
+
 def test_evaluate_refuses_another_displacement_target(first_run, data_root):
     r = _run(
         "scripts/evaluate.py",

@@ -8,6 +8,9 @@ Kendall's tau-b of paired rankings ``x, y`` (n,) (ties handled as in ``scipy.sta
 ``tau_s`` ranks grasps by mean von Mises stress over the object's vertices, ``tau_d`` by mean deformation
 ``|d|`` (thesis §7.4: the distance between rest and deformed vertex positions). Rankings compare grasps of
 the same object, modulus and ramp step (the same commanded force level); tau is averaged over such groups.
+How far the mean tau can be trusted is the 95 % interval of a cluster bootstrap over objects
+(:func:`kendall_tau_interval`): the groups of one object share its few test grasps, so they are not
+independent, and resampling groups would understate the spread; resampling whole objects does not.
 Errors are node-weighted over all object vertices: stress MAE [Pa] (also reported in kPa), deformation MAE
 ``| |d_pred| - |d_true| |`` [mm] and displacement-vector MAE ``|d_pred - d_true|`` [mm].
 """
@@ -20,7 +23,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["FieldMetrics", "PerSampleSums", "grouped_kendall_tau", "kendall_tau"]
+__all__ = [
+    "FieldMetrics",
+    "PerSampleSums",
+    "grouped_kendall_tau",
+    "kendall_tau",
+    "kendall_tau_interval",
+    "ranking_agreement_across_moduli",
+]
 
 
 def kendall_tau(x, y) -> float:
@@ -37,16 +47,86 @@ def kendall_tau(x, y) -> float:
     return float(np.sum(sx * sy) / denom) if denom > 0 else float("nan")
 
 
+def _group_taus(groups, pred, true) -> tuple[np.ndarray, np.ndarray]:
+    """(first row index of each group with a defined tau, its tau) for rows of ``groups`` (n, k)."""
+    groups = np.asarray(groups).reshape(len(pred), -1)
+    pred, true = np.asarray(pred), np.asarray(true)
+    _, first, inverse = np.unique(groups, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.ravel()
+    taus = np.array([kendall_tau(pred[inverse == u], true[inverse == u]) for u in range(len(first))])
+    keep = np.isfinite(taus)
+    return first[keep], taus[keep]
+
+
 def grouped_kendall_tau(groups, pred, true) -> tuple[float, int]:
     """Mean tau-b over groups (rows of ``groups`` (n, k) with equal keys) with a defined tau.
 
     Returns:
         (mean tau, number of groups it averages); (NaN, 0) if no group has a defined tau.
     """
-    groups = np.asarray(groups).reshape(len(pred), -1)
-    pred, true = np.asarray(pred), np.asarray(true)
-    _, inverse = np.unique(groups, axis=0, return_inverse=True)
-    taus = [kendall_tau(pred[inverse.ravel() == u], true[inverse.ravel() == u]) for u in np.unique(inverse)]
+    _, taus = _group_taus(groups, pred, true)
+    return (float(np.mean(taus)), len(taus)) if len(taus) else (float("nan"), 0)
+
+
+def kendall_tau_interval(
+    groups, clusters, pred, true, level: float = 0.95, resamples: int = 2000, seed: int = 0
+) -> tuple[float, float]:
+    """Percentile interval of the mean group tau (:func:`grouped_kendall_tau`) by a cluster bootstrap.
+
+    Every group lies in one cluster (``clusters`` (n,), e.g. the object id of each row; rows of one group
+    must share it). A resample draws as many clusters as there are, with replacement, and averages the taus
+    of all their groups. Returns (low, high); (NaN, NaN) with fewer than two clusters that have a tau.
+    """
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must lie in (0, 1), got {level}")
+    first, taus = _group_taus(groups, pred, true)
+    if not len(taus):
+        return float("nan"), float("nan")
+    _, cluster_of_group = np.unique(np.asarray(clusters).ravel()[first], return_inverse=True)
+    cluster_of_group = cluster_of_group.ravel()
+    num_clusters = int(cluster_of_group.max()) + 1
+    if num_clusters < 2:
+        return float("nan"), float("nan")
+    tau_sum = np.bincount(cluster_of_group, weights=taus, minlength=num_clusters)
+    count = np.bincount(cluster_of_group, minlength=num_clusters).astype(np.float64)
+    draws = np.random.default_rng(seed).integers(0, num_clusters, size=(resamples, num_clusters))
+    means = tau_sum[draws].sum(axis=1) / count[draws].sum(axis=1)
+    alpha = (1.0 - level) / 2.0
+    low, high = np.quantile(means, [alpha, 1.0 - alpha])
+    return float(low), float(high)
+
+
+def ranking_agreement_across_moduli(values, converged, min_grasps: int = 3) -> tuple[float, int]:
+    """Mean Kendall tau between the grasp rankings of every two moduli of one object at the same ramp step.
+
+    The ground truth's own answer to "how much of a grasp's rank is set by where it grasps": in linear
+    elasticity at a given force, the stress field hardly depends on E, so the rankings of the same grasps at
+    two moduli agree unless contact (which vertices touch, slip, friction) changes them. It bounds what
+    the unseen-modulus level can reach with rankings carried over from the training moduli.
+
+    Args:
+        values: (K, G, S) per-grasp summaries (e.g. mean von Mises stress) at K moduli, G grasps, S steps.
+        converged: (K, G) bool, the ramps that may be used.
+        min_grasps: a pair of moduli counts at a step only if this many grasps converged at both.
+
+    Returns:
+        (mean tau over modulus pairs and steps, number of (pair, step) rankings it averages); (NaN, 0) if
+        there is none.
+    """
+    values = np.asarray(values, dtype=np.float64)
+    converged = np.asarray(converged, dtype=bool)
+    if values.ndim != 3 or converged.shape != values.shape[:2]:
+        raise ValueError(
+            f"values (K, G, S) and converged (K, G) expected, got {values.shape}, {converged.shape}"
+        )
+    taus = []
+    for a in range(values.shape[0]):
+        for b in range(a + 1, values.shape[0]):
+            both = converged[a] & converged[b]
+            if both.sum() < min_grasps:
+                continue
+            for s in range(values.shape[2]):
+                taus.append(kendall_tau(values[a, both, s], values[b, both, s]))
     taus = [t for t in taus if np.isfinite(t)]
     return (float(np.mean(taus)), len(taus)) if taus else (float("nan"), 0)
 
@@ -172,12 +252,20 @@ class FieldMetrics(PerSampleSums):
         )
         tau_s, groups_s = grouped_kendall_tau(groups, a["mean_stress_pred"], a["mean_stress_true"])
         tau_d, _ = grouped_kendall_tau(groups, a["mean_deform_pred"], a["mean_deform_true"])
+        oid = a["object_id"]
+        tau_s_ci = kendall_tau_interval(groups, oid, a["mean_stress_pred"], a["mean_stress_true"])
+        tau_d_ci = kendall_tau_interval(groups, oid, a["mean_deform_pred"], a["mean_deform_true"])
         mae_pa = float(a["stress_abs_err"].sum() / n)
         return {
             "samples": int(len(a["nodes"])),
             "tau_groups": int(groups_s),
             "tau_s": tau_s,
             "tau_d": tau_d,
+            # 95 % cluster-bootstrap interval over objects (NaN for a single object)
+            "tau_s_ci_low": tau_s_ci[0],
+            "tau_s_ci_high": tau_s_ci[1],
+            "tau_d_ci_low": tau_d_ci[0],
+            "tau_d_ci_high": tau_d_ci[1],
             "mae_stress_pa": mae_pa,
             "mae_stress_kpa": mae_pa / 1e3,
             "mae_deformation_mm": float(a["deform_abs_err"].sum() / n * 1e3),

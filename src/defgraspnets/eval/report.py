@@ -12,13 +12,15 @@ import numpy as np
 
 __all__ = ["LEVEL_COLUMNS", "OBJECT_COLUMNS", "markdown_table", "plot_fields", "write_json"]
 
-# (key, header, format)
+# (key, header, format); a tuple of keys fills one cell with several values (a confidence interval)
 LEVEL_COLUMNS = (
     ("split", "Generalization level", "{}"),
     ("displacement_target", "Displacement", "{}"),
     ("samples", "Test samples", "{:d}"),
     ("tau_s", "τ_s ↑", "{:.2f}"),
     ("tau_d", "τ_d ↑", "{:.2f}"),
+    (("tau_s_ci_low", "tau_s_ci_high"), "τ_s 95 % CI", "[{:.2f}, {:.2f}]"),
+    (("tau_d_ci_low", "tau_d_ci_high"), "τ_d 95 % CI", "[{:.2f}, {:.2f}]"),
     ("mae_stress_kpa", "Stress MAE [kPa] ↓", "{:.3g}"),
     ("mae_deformation_mm", "Deformation MAE [mm] ↓", "{:.3g}"),
 )
@@ -34,12 +36,13 @@ OBJECT_COLUMNS = (
 
 
 def _fmt(value, fmt: str) -> str:
-    if value is None:
+    values = list(value) if isinstance(value, tuple) else [value]
+    if any(v is None for v in values):
         return "–"
-    if isinstance(value, float) and not math.isfinite(value):
+    if any(isinstance(v, float) and not math.isfinite(v) for v in values):
         return "n/a"
     try:
-        return fmt.format(value)
+        return fmt.format(*values)
     except (ValueError, TypeError):
         return str(value)
 
@@ -48,7 +51,11 @@ def markdown_table(rows: Sequence[dict], columns=LEVEL_COLUMNS) -> str:
     """A GitHub-Markdown table of ``rows`` (dicts) with ``columns`` = ((key, header, format), ...)."""
     head = "| " + " | ".join(h for _, h, _ in columns) + " |"
     rule = "|" + "|".join("---" for _ in columns) + "|"
-    body = ["| " + " | ".join(_fmt(r.get(k), f) for k, _, f in columns) + " |" for r in rows]
+
+    def cell(row: dict, key, fmt: str) -> str:
+        return _fmt(tuple(row.get(k) for k in key) if isinstance(key, tuple) else row.get(key), fmt)
+
+    body = ["| " + " | ".join(cell(r, k, f) for k, _, f in columns) + " |" for r in rows]
     return "\n".join([head, rule, *body])
 
 
