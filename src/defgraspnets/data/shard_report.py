@@ -1,0 +1,114 @@
+"""What a directory of grasp shards holds: ramps solved and failed by cause, field magnitudes, and how
+consistently the ground truth ranks the grasps (a reference for the Kendall tau a model can reach).
+
+    rows = [shard_summary(GraspShard(p)) for p in discover_shards("data/grasps")]
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from defgraspnets.eval.metrics import ranking_agreement_across_moduli
+from defgraspnets.fem.results import SolveStatus
+from defgraspnets.grasp.datagen import STATUS_INVERTED
+from defgraspnets.grasp.metrics import rigid_removed_deformation
+
+from .grasp_schema import GraspShard
+
+__all__ = ["report_markdown", "shard_summary", "status_name"]
+
+# codes of /ramp/status besides the solver's
+_EXTRA_STATUS = {STATUS_INVERTED: "INVERTED"}
+
+
+def status_name(code: int) -> str:
+    """Name of a /ramp/status code (``SolveStatus`` or the generator's own)."""
+    try:
+        return SolveStatus(int(code)).name
+    except ValueError:
+        return _EXTRA_STATUS.get(int(code), f"code {int(code)}")
+
+
+def shard_summary(shard: GraspShard, progress: bool = False) -> dict:
+    """Counts, field magnitudes and ground-truth ranking agreement of one shard.
+
+    Returns a dict with ``object``, ``category``, ``vertices``, ``moduli`` [Pa], ``grasps``, ``steps``,
+    ``ramps``, ``converged``, ``status`` ({name: count}), the medians over converged ramps of the mean von
+    Mises stress [kPa] and mean rigid-removed deformation [mm] at the last step, and
+    ``stress_ranking_agreement`` / ``deformation_ranking_agreement``
+    (:func:`~defgraspnets.eval.metrics.ranking_agreement_across_moduli` of those per-grasp means).
+    """
+    k_count, g_count, s_count = shard.num_moduli, shard.num_grasps, shard.num_steps
+    solved = shard.status == 0
+    mean_stress = np.full((k_count, g_count, s_count), np.nan)
+    mean_deform = np.full((k_count, g_count, s_count), np.nan)
+    rest = shard.object.points
+    entries = [(k, g) for k in range(k_count) for g in range(g_count) if solved[k, g]]
+    for k, g in tqdm(entries, desc=shard.object.name, leave=False, disable=not progress):
+        for s in range(s_count):
+            stress, disp = shard.fields(k, g, s)
+            mean_stress[k, g, s] = float(np.mean(stress))
+            mean_deform[k, g, s] = float(np.mean(rigid_removed_deformation(rest, rest + disp)))
+    codes, counts = np.unique(shard.status, return_counts=True)
+    tau_s, pairs = ranking_agreement_across_moduli(mean_stress, solved)
+    tau_d, _ = ranking_agreement_across_moduli(mean_deform, solved)
+    nan = float("nan")
+    return {
+        "object": shard.object.name,
+        "category": shard.object.category,
+        "vertices": int(len(rest)),
+        "moduli": [float(e) for e in shard.object.youngs_modulus],
+        "grasps": int(g_count),
+        "steps": int(s_count),
+        "ramps": int(k_count * g_count),
+        "converged": int(solved.sum()),
+        "status": {status_name(c): int(n) for c, n in zip(codes, counts)},
+        "mean_stress_kpa": float(np.median(mean_stress[solved, -1]) / 1e3) if solved.any() else nan,
+        "mean_deformation_mm": float(np.median(mean_deform[solved, -1]) * 1e3) if solved.any() else nan,
+        "stress_ranking_agreement": tau_s,
+        "deformation_ranking_agreement": tau_d,
+        "ranking_pairs": int(pairs),
+    }
+
+
+_COLUMNS = (
+    ("object", "Object", "{}"),
+    ("vertices", "Vertices", "{:d}"),
+    ("converged", "Converged", "{:d}"),
+    ("ramps", "Ramps", "{:d}"),
+    ("failures", "Failed ramps by cause", "{}"),
+    ("mean_stress_kpa", "Mean stress, last step [kPa]", "{:.3g}"),
+    ("mean_deformation_mm", "Mean deformation, last step [mm]", "{:.3g}"),
+    ("stress_ranking_agreement", "τ_s across moduli", "{:.2f}"),
+    ("deformation_ranking_agreement", "τ_d across moduli", "{:.2f}"),
+)
+
+
+def report_markdown(rows: list[dict]) -> str:
+    """Markdown table of :func:`shard_summary` rows with a total line (agreements: mean over shards)."""
+    from defgraspnets.eval.report import markdown_table
+
+    def failures(status: dict) -> str:
+        failed = {name: n for name, n in status.items() if name != SolveStatus.CONVERGED.name}
+        return ", ".join(f"{name} {n}" for name, n in sorted(failed.items())) or "none"
+
+    table = [{**r, "failures": failures(r["status"])} for r in rows]
+    if rows:
+        total: dict = {"object": "**all**", "vertices": None, "failures": ""}
+        for key in ("converged", "ramps"):
+            total[key] = sum(r[key] for r in rows)
+        for key in ("stress_ranking_agreement", "deformation_ranking_agreement"):
+            values = [r[key] for r in rows if np.isfinite(r[key])]
+            total[key] = float(np.mean(values)) if values else float("nan")
+        status: dict[str, int] = {}
+        for r in rows:
+            for name, n in r["status"].items():
+                status[name] = status.get(name, 0) + n
+        total["failures"] = failures(status)
+        table.append(total)
+    return (
+        "## Grasp data\n\nτ across moduli: mean Kendall tau between the rankings of the same grasps (by "
+        "mean von Mises stress, by mean rigid-removed deformation) at two Young's moduli and the same ramp "
+        "step.\n\n" + markdown_table(table, _COLUMNS) + "\n"
+    )
