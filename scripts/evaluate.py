@@ -24,7 +24,8 @@ log = logging.getLogger("evaluate")
 
 
 def load(ckpt_path: str, cfg: DictConfig, device):
-    """(predictor module, datamodule) of a checkpoint, the datamodule with ``cfg.data`` overrides."""
+    """(predictor module, datamodule) of a checkpoint, the datamodule with ``cfg.data`` overrides; for
+    ``cfg.part == "train"`` its training part holds the evaluation steps (not the training steps)."""
     import torch
 
     from defgraspnets.data.datamodule import GraspDataModule
@@ -40,6 +41,8 @@ def load(ckpt_path: str, cfg: DictConfig, device):
     for key, value in OmegaConf.to_container(cfg.data, resolve=True).items():
         if value is not None:
             dm_hparams[key] = value
+    if cfg.part == "train":
+        dm_hparams["train_steps"] = dm_hparams.get("eval_steps")
     module = DefGraspNetsModule.load_from_checkpoint(path, map_location="cpu").to(device).eval()
     module.use_displacement_target(dm_hparams.get("displacement", "total"))
     return module, GraspDataModule(**dm_hparams)

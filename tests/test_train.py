@@ -16,6 +16,7 @@ from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 from test_data_synthetic import make_shards
 
+from defgraspnets.data.datamodule import GraspDataModule
 from defgraspnets.data.dataset import check_displacement_target
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -146,7 +147,7 @@ def test_evaluate_script(first_run, data_root):
 
 
 def test_evaluate_script_on_the_training_part(first_run, data_root):
-    """part=train evaluates the training grasps (every step with data.train_steps=null) and says so."""
+    """part=train evaluates the training grasps at the test part's steps and says so."""
     runs = {}
     for part in ("test", "train"):
         out = data_root / f"eval_part_{part}"
@@ -155,7 +156,6 @@ def test_evaluate_script_on_the_training_part(first_run, data_root):
             f"ckpt_path={first_run}/checkpoints/last.ckpt",
             f"hydra.run.dir={out}",
             f"part={part}",
-            "data.train_steps=null",
             "plots=1",
             "chamfer_samples=64",
             "extras.print_config=false",
@@ -165,8 +165,14 @@ def test_evaluate_script_on_the_training_part(first_run, data_root):
         runs[part] = json.loads((out / "results.json").read_text())["levels"][0]
     assert runs["test"]["split"] == "unseen_grasps"
     assert runs["train"]["split"] == "unseen_grasps/train"
-    # 3 grasps x 2 steps per ramp: the training part holds more samples than the one-step test part
-    assert runs["train"]["samples"] > runs["test"]["samples"] > 0
+    # the training grasps at the test part's one step (data.eval_steps=[-1]), not at both training steps
+    hp = torch.load(first_run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)[
+        "datamodule_hyper_parameters"
+    ]
+    assert hp["train_steps"] is None and list(hp["eval_steps"]) == [-1]
+    dm = GraspDataModule(**{**hp, "train_steps": [-1]})
+    dm.setup("test")
+    assert runs["train"]["samples"] == len(dm.datasets["train"]) > runs["test"]["samples"] > 0
     assert (data_root / "eval_part_train" / "fields_unseen_grasps_train_0_stress.png").exists()
     bad = _run(
         "scripts/evaluate.py",
