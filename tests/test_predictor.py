@@ -211,3 +211,46 @@ def test_fused_message_passing_is_refused_where_it_cannot_run(trained, monkeypat
     monkeypatch.setenv("TRITON_INTERPRET", "0")
     with pytest.raises(ValueError, match="fused_message_passing needs Triton, a CUDA device"):
         DefGraspNetsPredictor.from_checkpoint(path, fused_message_passing=True)
+
+
+def test_graph_mean_loss_counts_only_errors_that_shift_a_graphs_mean(trained):
+    module, dm, _ = trained
+    batch = next(iter(dm.val_dataloader()))
+    assert batch.graph_count == 2
+    target = module.net.normalized_targets(batch)
+    mask_s, mask_d = module.net.loss_mask(batch)
+    graph = batch.node_graph()
+    # +-0.5 alternating within each graph's stress-loss nodes (an even number each): node MSE 0.25, means kept
+    sign = torch.zeros(len(target))
+    for g in range(batch.graph_count):
+        nodes = torch.nonzero(mask_s & (graph == g)).ravel()
+        nodes = nodes[: len(nodes) // 2 * 2]
+        sign[nodes] = torch.tensor([1.0, -1.0]).repeat(len(nodes) // 2)
+    cancel = target.clone()
+    cancel[:, 0] += 0.5 * sign
+    shift = target.clone()
+    shift[mask_s, 0] += 0.5 * sign[mask_s].abs()
+    assert module.graph_mean_loss(batch, target, target) == pytest.approx(0.0, abs=1e-10)
+    assert module.graph_mean_loss(batch, cancel, target) == pytest.approx(0.0, abs=1e-10)
+    # every displacement magnitude 0.3 longer: every graph's mean shifts by 0.3, adding 0.3^2
+    scaled = target.clone()
+    norm = target[:, 1:].norm(dim=1, keepdim=True)
+    direction = torch.where(norm > 0, target[:, 1:] / norm.clamp_min(1e-30), torch.tensor([1.0, 0.0, 0.0]))
+    scaled[mask_d, 1:] = direction[mask_d] * (norm[mask_d] + 0.3)
+    shifted_mean = []
+    for g in range(batch.graph_count):
+        m = mask_s & (graph == g)
+        shifted_mean.append(float((0.5 * sign[m].abs()).mean()))
+    want = float(np.mean(np.square(shifted_mean)))
+    assert module.graph_mean_loss(batch, shift, target).item() == pytest.approx(want, rel=1e-5)
+    assert module.graph_mean_loss(batch, scaled, target).item() == pytest.approx(0.09, rel=1e-4)
+    # the total adds the term with its weight; the node MSE parts are unchanged
+    base_total, base_s, _ = module.loss(batch, shift)
+    module.hparams.graph_mean_weight = 2.0
+    try:
+        total, s, _ = module.loss(batch, shift)
+    finally:
+        module.hparams.graph_mean_weight = 0.0
+    assert s == base_s and total.item() == pytest.approx(base_total.item() + 2.0 * want, rel=1e-5)
+    with pytest.raises(ValueError, match="graph_mean_weight must be >= 0"):
+        DefGraspNetsModule(latent=8, num_blocks=1, graph_mean_weight=-1.0)
