@@ -127,22 +127,31 @@ def test_resume_from_checkpoint(first_run, data_root):
     assert {int(row["epoch"]) for row in _metrics(out) if row["epoch"]} == {1}
 
 
+def _evaluate(first_run: Path, out: Path, *args: str) -> subprocess.CompletedProcess:
+    """scripts/evaluate.py on the first run's last checkpoint, writing to ``out``."""
+    ckpt = f"ckpt_path={first_run}/checkpoints/last.ckpt"
+    return _run(
+        "scripts/evaluate.py",
+        ckpt,
+        f"hydra.run.dir={out}",
+        "extras.print_config=false",
+        *args,
+        cwd=out.parent,
+    )
+
+
 def test_evaluate_script(first_run, data_root):
     out = data_root / "eval"
-    r = _run(
-        "scripts/evaluate.py",
-        f"ckpt_path={first_run}/checkpoints/last.ckpt",
-        f"hydra.run.dir={out}",
-        "plots=1",
-        "chamfer_samples=256",
-        "extras.print_config=false",
-        cwd=data_root,
-    )
+    r = _evaluate(first_run, out, "plots=1", "chamfer_samples=256")
     assert r.returncode == 0, r.stderr[-4000:]
     text = (out / "results.md").read_text()
     assert "| unseen_grasps | rigid_removed |" in text and "τ_s" in text and "d_C [mm]" in text
+    assert "τ_s 95 % CI" in text
     level = json.loads((out / "results.json").read_text())["levels"][0]
     assert level["displacement_target"] == "rigid_removed"
+    for key in ("tau_s", "tau_d"):  # several test objects: a defined interval around the mean
+        if level[key] is not None:
+            assert level[f"{key}_ci_low"] <= level[key] <= level[f"{key}_ci_high"]
     assert (out / "fields_unseen_grasps_0_stress.png").stat().st_size > 10_000
 
 
@@ -151,16 +160,7 @@ def test_evaluate_script_on_the_training_part(first_run, data_root):
     runs = {}
     for part in ("test", "train"):
         out = data_root / f"eval_part_{part}"
-        r = _run(
-            "scripts/evaluate.py",
-            f"ckpt_path={first_run}/checkpoints/last.ckpt",
-            f"hydra.run.dir={out}",
-            f"part={part}",
-            "plots=1",
-            "chamfer_samples=64",
-            "extras.print_config=false",
-            cwd=data_root,
-        )
+        r = _evaluate(first_run, out, f"part={part}", "plots=1", "chamfer_samples=64")
         assert r.returncode == 0, r.stderr[-4000:]
         runs[part] = json.loads((out / "results.json").read_text())["levels"][0]
     assert runs["test"]["split"] == "unseen_grasps"
@@ -174,27 +174,12 @@ def test_evaluate_script_on_the_training_part(first_run, data_root):
     dm.setup("test")
     assert runs["train"]["samples"] == len(dm.datasets["train"]) > runs["test"]["samples"] > 0
     assert (data_root / "eval_part_train" / "fields_unseen_grasps_train_0_stress.png").exists()
-    bad = _run(
-        "scripts/evaluate.py",
-        f"ckpt_path={first_run}/checkpoints/last.ckpt",
-        f"hydra.run.dir={data_root}/eval_part_bad",
-        "part=training",
-        "extras.print_config=false",
-        cwd=data_root,
-    )
+    bad = _evaluate(first_run, data_root / "eval_part_bad", "part=training")
     assert bad.returncode != 0 and "part='training': choose test, val or train" in bad.stderr
 
 
 def test_evaluate_refuses_another_displacement_target(first_run, data_root):
-    r = _run(
-        "scripts/evaluate.py",
-        f"ckpt_path={first_run}/checkpoints/last.ckpt",
-        f"hydra.run.dir={data_root}/eval_total",
-        "+data.displacement=total",
-        "plots=0",
-        "extras.print_config=false",
-        cwd=data_root,
-    )
+    r = _evaluate(first_run, data_root / "eval_total", "+data.displacement=total", "plots=0")
     assert r.returncode != 0
     assert "data.displacement=total differs from the 'rigid_removed' displacement" in r.stderr
 
