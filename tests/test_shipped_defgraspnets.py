@@ -101,3 +101,26 @@ def test_multi_object_checkpoint_ranks_unseen_grasps_of_a_training_object():
     assert np.all((ratio > 1 / 3) & (ratio < 3)), ratio
     assert torch.all(pred.mean_deformation > half.mean_deformation)
     assert torch.all(pred.mean_stress > half.mean_stress)
+
+
+def test_multi_object_checkpoint_ships_the_meshes_of_its_data():
+    """defgraspnets_objects18_meshes/ holds one validated tet mesh per object the checkpoint was evaluated
+    on, labelled as in the registry (fTetWild is not deterministic: names alone would mesh differently)."""
+    import json
+
+    from defgraspnets.grasp.datagen import resolve_object_mesh
+    from defgraspnets.objects import get_object
+
+    root = CKPT.parent
+    labels = json.loads((root / "defgraspnets_objects18_meshes" / "objects.json").read_text())
+    evaluated = {
+        r["object"] for r in json.loads((root / "defgraspnets_objects18_eval.json").read_text())["objects"]
+    }
+    assert set(labels) == evaluated and len(labels) == 18
+    for name, label in labels.items():
+        mesh = resolve_object_mesh(str(root / "defgraspnets_objects18_meshes" / f"{name}.vtu"))
+        assert mesh.num_vertices == label["vertices"] and 200 <= mesh.num_vertices <= 400
+        model = get_object(name)
+        assert (label["category"], label["source"]) == (model.category, model.source)
+        # an fTetWild mesh of the object: its volume within 6 % of the closed surface's
+        assert mesh.volume == pytest.approx(model.surface.volume, rel=0.06)
