@@ -81,6 +81,7 @@ def evaluate_checkpoint(ckpt_path: str, cfg: DictConfig, out_dir: Path) -> tuple
             metrics.update(stress, disp, batch)
     # a part other than the test part is named in every row and file ("unseen_grasps/train")
     split = dm.split_name if cfg.part == "test" else f"{dm.split_name}/{cfg.part}"
+    stem = split.replace("/", "_")
     # which field "deformation" is: the total displacement or the one without the object's rigid motion
     level = {
         "split": split,
@@ -125,7 +126,7 @@ def evaluate_checkpoint(ckpt_path: str, cfg: DictConfig, out_dir: Path) -> tuple
             pts,
             s[obj].cpu().numpy() / 1e3,
             g.stress[obj].cpu().numpy() / 1e3,
-            out_dir / f"fields_{split.replace('/', '_')}_{j}_stress.png",
+            out_dir / f"fields_{stem}_{j}_stress.png",
             title,
             "von Mises stress [kPa]",
         )
@@ -133,7 +134,7 @@ def evaluate_checkpoint(ckpt_path: str, cfg: DictConfig, out_dir: Path) -> tuple
             pts,
             d[obj].norm(dim=1).cpu().numpy() * 1e3,
             g.displacement[obj].norm(dim=1).cpu().numpy() * 1e3,
-            out_dir / f"fields_{split.replace('/', '_')}_{j}_deformation.png",
+            out_dir / f"fields_{stem}_{j}_deformation.png",
             title,
             "deformation |d| [mm]",
         )

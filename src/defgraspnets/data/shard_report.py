@@ -10,6 +10,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from defgraspnets.eval.metrics import ranking_agreement_across_moduli
+from defgraspnets.eval.report import markdown_table
 from defgraspnets.fem.results import SolveStatus
 from defgraspnets.grasp.datagen import STATUS_INVERTED
 from defgraspnets.grasp.metrics import rigid_removed_deformation
@@ -87,7 +88,6 @@ _COLUMNS = (
 
 def report_markdown(rows: list[dict]) -> str:
     """Markdown table of :func:`shard_summary` rows with a total line (agreements: mean over shards)."""
-    from defgraspnets.eval.report import markdown_table
 
     def failures(status: dict) -> str:
         failed = {name: n for name, n in status.items() if name != SolveStatus.CONVERGED.name}

@@ -77,12 +77,19 @@ def kendall_tau_interval(
     must share it). A resample draws as many clusters as there are, with replacement, and averages the taus
     of all their groups. Returns (low, high); (NaN, NaN) with fewer than two clusters that have a tau.
     """
+    first, taus = _group_taus(groups, pred, true)
+    return _cluster_bootstrap_interval(taus, np.asarray(clusters).ravel()[first], level, resamples, seed)
+
+
+def _cluster_bootstrap_interval(
+    taus: np.ndarray, clusters: np.ndarray, level: float = 0.95, resamples: int = 2000, seed: int = 0
+) -> tuple[float, float]:
+    """:func:`kendall_tau_interval` of group taus ``taus`` (m,) in clusters ``clusters`` (m,)."""
     if not 0.0 < level < 1.0:
         raise ValueError(f"level must lie in (0, 1), got {level}")
-    first, taus = _group_taus(groups, pred, true)
     if not len(taus):
         return float("nan"), float("nan")
-    _, cluster_of_group = np.unique(np.asarray(clusters).ravel()[first], return_inverse=True)
+    _, cluster_of_group = np.unique(clusters, return_inverse=True)
     cluster_of_group = cluster_of_group.ravel()
     num_clusters = int(cluster_of_group.max()) + 1
     if num_clusters < 2:
@@ -250,11 +257,15 @@ class FieldMetrics(PerSampleSums):
         groups = np.stack(
             [a["object_id"], np.round(np.log10(a["youngs_modulus"]), 6), a["sample"][:, 3]], axis=1
         )
-        tau_s, groups_s = grouped_kendall_tau(groups, a["mean_stress_pred"], a["mean_stress_true"])
-        tau_d, _ = grouped_kendall_tau(groups, a["mean_deform_pred"], a["mean_deform_true"])
-        oid = a["object_id"]
-        tau_s_ci = kendall_tau_interval(groups, oid, a["mean_stress_pred"], a["mean_stress_true"])
-        tau_d_ci = kendall_tau_interval(groups, oid, a["mean_deform_pred"], a["mean_deform_true"])
+
+        def tau_and_interval(pred, true) -> tuple[float, int, tuple[float, float]]:
+            # group taus once; their mean and its cluster-bootstrap interval over objects
+            first, taus = _group_taus(groups, pred, true)
+            mean = float(np.mean(taus)) if len(taus) else float("nan")
+            return mean, len(taus), _cluster_bootstrap_interval(taus, a["object_id"][first])
+
+        tau_s, groups_s, tau_s_ci = tau_and_interval(a["mean_stress_pred"], a["mean_stress_true"])
+        tau_d, _, tau_d_ci = tau_and_interval(a["mean_deform_pred"], a["mean_deform_true"])
         mae_pa = float(a["stress_abs_err"].sum() / n)
         return {
             "samples": int(len(a["nodes"])),

@@ -231,13 +231,21 @@ class DefGraspNetsModule(LightningModule):
         hp = self.hparams
         total = hp.stress_weight * stress + hp.displacement_weight * disp
         if hp.graph_mean_weight > 0:
-            total = total + hp.graph_mean_weight * self.graph_mean_loss(batch, pred, target)
+            masks = (mask_s, mask_d)
+            total = total + hp.graph_mean_weight * self.graph_mean_loss(batch, pred, target, masks)
         return total, stress, disp
 
-    def graph_mean_loss(self, batch: GraspGraph, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    def graph_mean_loss(
+        self,
+        batch: GraspGraph,
+        pred: torch.Tensor,
+        target: torch.Tensor,
+        masks: tuple[torch.Tensor, torch.Tensor] | None = None,
+    ) -> torch.Tensor:
         """MSE over graphs of the mean standardized stress plus that of the mean standardized displacement
-        magnitude, each mean over the graph's loss nodes (``pred``, ``target`` (n, 4) standardized)."""
-        mask_s, mask_d = self.net.loss_mask(batch)
+        magnitude, each mean over the graph's loss nodes (``pred``, ``target`` (n, 4) standardized;
+        ``masks``: the stress and displacement loss masks if already computed)."""
+        mask_s, mask_d = masks if masks is not None else self.net.loss_mask(batch)
         graph, b = batch.node_graph(), batch.graph_count
 
         def graph_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
