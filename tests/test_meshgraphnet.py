@@ -11,7 +11,7 @@ from torch_geometric.loader import DataLoader
 from defgraspnets.data.dataset import GraspFieldDataset, sample_index
 from defgraspnets.data.grasp_schema import GraspShard
 from defgraspnets.models.graph import NODE_FINGER
-from defgraspnets.models.meshgraphnet import DefGraspNet
+from defgraspnets.models.meshgraphnet import DefGraspNet, EncodeProcessDecode
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -35,9 +35,10 @@ def _net(ds, dtype=torch.float32, **kw):
     return net.to(dtype).eval()
 
 
-def test_batch_of_two_equals_two_single_passes(shards):
+@pytest.mark.parametrize("global_context", [False, True])
+def test_batch_of_two_equals_two_single_passes(shards, global_context):
     ds = _dataset(shards, [[0, 0, 0], [2, 2, 1]])  # two different objects, moduli, grasps
-    net = _net(ds, torch.float64)
+    net = _net(ds, torch.float64, global_context=global_context)
     batch = next(iter(DataLoader(ds, batch_size=2))).to_dtype(torch.float64)
     with torch.no_grad():
         joint = net(batch)
@@ -50,6 +51,46 @@ def test_batch_of_two_equals_two_single_passes(shards):
             s, d = net.fields(single)
             torch.testing.assert_close(s, s_joint[sl], rtol=1e-10, atol=1e-6)
             torch.testing.assert_close(d, d_joint[sl], rtol=1e-10, atol=1e-15)
+
+
+def test_global_context_reaches_past_the_message_passing_range():
+    """One block passes messages one edge far: on a chain of 8 nodes the output of node 0 ignores node 7,
+    unless the global context is on; it never mixes two graphs of a batch."""
+    chain = torch.stack([torch.arange(7), torch.arange(1, 8)])
+    mesh_index = torch.cat([chain, chain.flip(0)], dim=1)
+    contact_index = torch.zeros(2, 0, dtype=torch.long)
+
+    def outputs(net, node):
+        # two copies of the chain in one batch: nodes 0-7 graph 0, nodes 8-15 graph 1
+        index = torch.cat([mesh_index, mesh_index + 8], dim=1)
+        graph = torch.arange(2).repeat_interleave(8)
+        mesh = torch.ones(index.shape[1], 2, dtype=torch.float64)
+        contact = torch.zeros(0, 3, dtype=torch.float64)
+        with torch.no_grad():
+            return net(node, mesh, contact, index, contact_index, node_graph=graph, num_graphs=2)
+
+    gen = torch.Generator().manual_seed(0)
+    node = torch.randn(16, 4, generator=gen, dtype=torch.float64)
+    far = node.clone()
+    far[7] += 1.0  # the far end of graph 0
+    for context in (False, True):
+        torch.manual_seed(0)
+        net = EncodeProcessDecode(4, 2, 3, 1, latent=8, num_blocks=1, global_context=context).double()
+        base, moved = outputs(net, node), outputs(net, far)
+        changed = (moved - base).abs().squeeze(1) > 1e-12
+        assert changed[6:8].all()  # node 7 and its neighbour see the change in any case
+        assert bool(changed[0]) == context  # node 0 is 7 edges away
+        assert bool(changed[:8].all()) == context
+        assert not changed[8:].any()  # graph 1 is untouched
+    # a single graph without node_graph is one graph
+    single = net(
+        node[:8],
+        torch.ones(14, 2, dtype=torch.float64),
+        torch.zeros(0, 3, dtype=torch.float64),
+        mesh_index,
+        contact_index,
+    )
+    torch.testing.assert_close(single, base[:8], rtol=1e-12, atol=1e-12)
 
 
 def test_overfits_tiny_dataset(shards):

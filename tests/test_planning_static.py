@@ -61,7 +61,15 @@ def _predict(predictor, box, grasps, grad=False, youngs=2e5):
 
 
 @pytest.mark.parametrize(
-    "kw", [{}, {"outputs": "separate"}, {"force_feature": "total"}, {"force_on": "nodes"}], ids=str
+    "kw",
+    [
+        {},
+        {"outputs": "separate"},
+        {"force_feature": "total"},
+        {"force_on": "nodes"},
+        {"global_context": True},
+    ],
+    ids=str,
 )
 def test_padding_and_shared_object_give_the_plain_outputs_and_gradients(box, grasps, kw):
     """Every combination of padded contact edges and the shared object encoding predicts the fields (and

@@ -58,6 +58,35 @@ def test_checkpoint_round_trip_predicts_identically(trained):
         DefGraspNetsPredictor.from_checkpoint(path.with_name("missing.ckpt"))
 
 
+def test_global_context_checkpoint_round_trip(trained, tmp_path):
+    """A module with the graph-level context saves and reloads it (config key ``model.global_context``);
+    a checkpoint saved without the key (all earlier ones) loads without it."""
+    _, dm, path = trained
+    module = DefGraspNetsModule(latent=16, num_blocks=2, global_context=True)
+    trainer = Trainer(
+        max_steps=2,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        limit_val_batches=1,
+        num_sanity_val_steps=0,
+        accelerator="cpu",
+    )
+    trainer.fit(module, datamodule=dm)
+    saved = tmp_path / "context.ckpt"
+    trainer.save_checkpoint(saved)
+    predictor = DefGraspNetsPredictor.from_checkpoint(saved)
+    assert len(predictor.net.networks[0].global_blocks) == 2
+    batch = next(iter(dm.val_dataloader()))
+    with torch.no_grad():
+        assert torch.equal(module.eval().net.fields(batch)[0], predictor.net.fields(batch)[0])
+    old = torch.load(path, map_location="cpu", weights_only=False)
+    del old["hyper_parameters"]["global_context"]
+    torch.save(old, tmp_path / "old.ckpt")
+    assert DefGraspNetsPredictor.from_checkpoint(tmp_path / "old.ckpt").net.networks[0].global_blocks is None
+
+
 def _grasp_inputs(dm):
     sh = dm.shards[0]
     mesh = TetMesh(sh.object.points, sh.object.tets)

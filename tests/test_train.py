@@ -220,6 +220,7 @@ def test_config_overrides_and_experiments():
     assert cfg.model.latent == 64 and cfg.trainer.max_epochs == 3 and cfg.data.split == "unseen_E"
     assert cfg.model.num_blocks == 15 and cfg.model.hidden_layers == 2 and cfg.data.contact_radius == 0.005
     assert cfg.model.lr == 5e-5 and cfg.model.lr_final == 1e-6 and cfg.model.lr_decay_epochs == 25
+    assert cfg.model.global_context is False  # the thesis's network; on: model.global_context=true
     assert set(cfg.logger) == {"csv", "wandb"} and cfg.logger.wandb.offline is True
     assert {"model_checkpoint", "lr_monitor"} <= set(cfg.callbacks)
     for name, key, value in (

@@ -99,6 +99,8 @@ class DefGraspNetsModule(LightningModule):
         latent, num_blocks, hidden_layers, outputs, prediction, num_steps, force_feature, force_on,
             stress_reference, modulus_reference, modulus_saturation: see :class:`DefGraspNet` (checkpoints
             saved without ``modulus_saturation`` load with ``None``, the scaling they were trained with).
+        global_context: a graph-level context after every message-passing block
+            (:class:`~defgraspnets.models.meshgraphnet.GlobalContext`); off by default (the thesis's network).
         stress_weight, displacement_weight: loss weights.
         graph_mean_weight: weight of a third loss term, the MSE over graphs of each graph's mean
             standardized stress and mean standardized displacement magnitude (its loss nodes). The node
@@ -125,6 +127,7 @@ class DefGraspNetsModule(LightningModule):
         stress_reference: float = 1e3,
         modulus_reference: float = 1e6,
         modulus_saturation: float | None = None,
+        global_context: bool = False,
         stress_weight: float = 1.0,
         displacement_weight: float = 1.0,
         graph_mean_weight: float = 0.0,
@@ -155,6 +158,7 @@ class DefGraspNetsModule(LightningModule):
             stress_reference,
             modulus_reference,
             modulus_saturation,
+            global_context,
         )
         self.register_buffer("contact_radius", torch.tensor(float("nan"), dtype=torch.float64))
         # displacement target of the training data (data.displacement), saved in the checkpoint; None: not set

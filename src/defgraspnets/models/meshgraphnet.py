@@ -6,6 +6,10 @@ Process (L = 15 blocks with unshared weights; Pfaff et al. 2021, residual connec
     ``m'_ij = f_M(m_ij, h_i, h_j)``,  ``c'_ij = f_C(c_ij, h_i, h_j)``
     ``h'_i = f_V(h_i, sum_{j->i in E^M} m'_ij, sum_{j->i in E^C} c'_ij)``
     ``h_i <- h_i + h'_i``,  ``m_ij <- m_ij + m'_ij``,  ``c_ij <- c_ij + c'_ij``
+Global context (optional, ``global_context=True``; not in the thesis)
+    after each block ``u_g = f_U(mean_{i in g} h_i)``, ``h_i <- h_i + u_{g(i)}``: every node sees a summary
+    of its whole graph at every block. L blocks of message passing reach L mesh edges; mean stress and
+    deformation, which grasps are ranked by, depend on how the whole object carries the load.
 Decode (MLP without LayerNorm)
     ``y_i = delta(h_i)`` = standardized [log-stress (1), scaled displacement (3)] per node.
 
@@ -52,7 +56,7 @@ from defgraspnets.data.normalization import Normalizer, TargetScaling
 from defgraspnets.models.fused_message_passing import fused_edge_update, fused_node_update
 from defgraspnets.models.graph import NODE_FINGER, GraspGraph, MultigraphFeaturizer
 
-__all__ = ["DefGraspNet", "EdgeMLP", "EncodeProcessDecode", "MLP", "ProcessorBlock"]
+__all__ = ["DefGraspNet", "EdgeMLP", "EncodeProcessDecode", "GlobalContext", "MLP", "ProcessorBlock"]
 
 
 class MLP(nn.Sequential):
@@ -168,12 +172,34 @@ class ProcessorBlock(nn.Module):
         return fused_node_update(self.node, node, mesh_sum, contact_sum), mesh, contact
 
 
+class GlobalContext(nn.Module):
+    """Graph-level context added to every node: ``h_i <- h_i + f_U(mean_{j in g(i)} h_j)``.
+
+    Shapes: node (n, l), node_graph (n,) graph index of every node -> (n, l). The mean is accumulated in
+    >= fp32; ``f_U`` is an MLP with LayerNorm on its output (as the processor's node MLP).
+    """
+
+    def __init__(self, latent: int, hidden_layers: int = 2):
+        super().__init__()
+        self.mlp = MLP(latent, latent, latent, hidden_layers, layer_norm=True)
+
+    def forward(self, node: Tensor, node_graph: Tensor, num_graphs: int) -> Tensor:
+        acc = torch.promote_types(node.dtype, torch.float32)
+        sums = torch.zeros(num_graphs, node.shape[1], dtype=acc, device=node.device)
+        sums.index_add_(0, node_graph, node.to(acc))
+        counts = torch.zeros(num_graphs, dtype=acc, device=node.device)
+        counts.index_add_(0, node_graph, torch.ones_like(node_graph, dtype=acc))
+        mean = (sums / counts.clamp_min(1.0).unsqueeze(1)).to(node.dtype)
+        return node + self.mlp(mean).index_select(0, node_graph)
+
+
 class EncodeProcessDecode(nn.Module):
     """MeshGraphNets encoder / L processor blocks / decoder on a two-edge-set multigraph.
 
     Args:
         node_dim, mesh_edge_dim, contact_edge_dim: input feature sizes. out_dim: outputs per node.
         latent: latent size l. num_blocks: L. hidden_layers: hidden layers of every MLP.
+        global_context: a :class:`GlobalContext` after every block (default off: the thesis's network).
     """
 
     def __init__(
@@ -185,12 +211,18 @@ class EncodeProcessDecode(nn.Module):
         latent: int = 128,
         num_blocks: int = 15,
         hidden_layers: int = 2,
+        global_context: bool = False,
     ):
         super().__init__()
         self.node_encoder = MLP(node_dim, latent, latent, hidden_layers)
         self.mesh_encoder = MLP(mesh_edge_dim, latent, latent, hidden_layers)
         self.contact_encoder = MLP(contact_edge_dim, latent, latent, hidden_layers)
         self.blocks = nn.ModuleList(ProcessorBlock(latent, hidden_layers) for _ in range(num_blocks))
+        self.global_blocks = (
+            nn.ModuleList(GlobalContext(latent, hidden_layers) for _ in range(num_blocks))
+            if global_context
+            else None
+        )
         self.decoder = MLP(latent, out_dim, latent, hidden_layers, layer_norm=False)
         # activation checkpointing: with gradients on, keep only each block's inputs and recompute its
         # intermediate activations in the backward pass (memory ~ L x latents instead of L x MLP layers)
@@ -218,6 +250,8 @@ class EncodeProcessDecode(nn.Module):
         contact_index: Tensor,
         contact_mask: Tensor | None = None,
         object_latents: tuple[Tensor, Tensor] | None = None,
+        node_graph: Tensor | None = None,
+        num_graphs: int = 1,
     ):
         """(n, node_dim), (E_M, ·), (E_C, ·) normalized features -> (n, out_dim).
 
@@ -226,6 +260,8 @@ class EncodeProcessDecode(nn.Module):
         G graphs whose nodes are ``[object N | per-graph n - N]`` and mesh edges ``[object E_o | per-graph]``;
         then ``node`` (G, n - N, node_dim) and ``mesh`` (G, E_M / G - E_o, ·) hold only the per-graph parts
         (same result as encoding the full features, without encoding the object G times).
+        ``node_graph`` (n,) graph index of every node and ``num_graphs``: the graphs the global context
+        averages over (default: one graph); unused without it.
         """
         c = self.contact_encoder(contact)
         if object_latents is None:
@@ -240,7 +276,10 @@ class EncodeProcessDecode(nn.Module):
         # networks with frozen weights (planning); training keeps the op-by-op blocks
         fused = self.fused_message_passing and not (grad and self.processor_requires_grad)
         recompute = self.activation_checkpointing and grad
-        for block in self.blocks:
+        if self.global_blocks is not None and node_graph is None:
+            node_graph = torch.zeros(h.shape[0], dtype=torch.long, device=h.device)
+            num_graphs = 1
+        for i, block in enumerate(self.blocks):
             if fused:
                 h, m, c = block.forward_fused(h, m, c, mesh_index, contact_index, contact_mask)
             elif recompute:
@@ -249,6 +288,8 @@ class EncodeProcessDecode(nn.Module):
                 )
             else:
                 h, m, c = block(h, m, c, mesh_index, contact_index, contact_mask)
+            if self.global_blocks is not None:
+                h = self.global_blocks[i](h, node_graph, num_graphs)
         return self.decoder(h)
 
 
@@ -262,6 +303,7 @@ class DefGraspNet(nn.Module):
         force_feature, force_on: see :class:`~defgraspnets.models.graph.MultigraphFeaturizer` (V3, V4).
         stress_reference, modulus_reference, modulus_saturation: target scaling [Pa], see
             :mod:`defgraspnets.data.normalization` (``modulus_saturation=None``: ``d E / E_ref``).
+        global_context: graph-level context after every block (:class:`GlobalContext`; not the thesis's).
 
     ``forward`` gives standardized outputs (n, 4) = [stress, displacement xyz]; :meth:`fields` gives von Mises
     stress [Pa] (n,) and displacement [m] (n, 3) of the final state (one pass, or a multi-step rollout).
@@ -280,6 +322,7 @@ class DefGraspNet(nn.Module):
         stress_reference: float = 1e3,
         modulus_reference: float = 1e6,
         modulus_saturation: float | None = None,
+        global_context: bool = False,
     ):
         super().__init__()
         if outputs not in ("joint", "separate"):
@@ -303,7 +346,12 @@ class DefGraspNet(nn.Module):
         out_dims = (4,) if outputs == "joint" else (1, 3)
         self.networks = nn.ModuleList(
             EncodeProcessDecode(
-                *dims, out_dim=o, latent=latent, num_blocks=num_blocks, hidden_layers=hidden_layers
+                *dims,
+                out_dim=o,
+                latent=latent,
+                num_blocks=num_blocks,
+                hidden_layers=hidden_layers,
+                global_context=global_context,
             )
             for o in out_dims
         )
@@ -416,8 +464,10 @@ class DefGraspNet(nn.Module):
             self.contact_edge_norm(contact).to(net_dtype),
         )
         mask = g.contact_edge_mask
+        graphs = (g.node_graph(), g.graph_count)
         outs = [
-            net(node, mesh, contact, g.mesh_edge_index, g.contact_edge_index, mask) for net in self.networks
+            net(node, mesh, contact, g.mesh_edge_index, g.contact_edge_index, mask, None, *graphs)
+            for net in self.networks
         ]
         return (outs[0] if len(outs) == 1 else torch.cat(outs, dim=1)).to(dtype)
 
@@ -517,6 +567,8 @@ class DefGraspNet(nn.Module):
                 g.contact_edge_index,
                 mask,
                 object_latents=latents,
+                node_graph=g.node_graph(),
+                num_graphs=g.graph_count,
             )
             for net, latents in zip(self.networks, object_latents, strict=True)
         ]
