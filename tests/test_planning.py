@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from lightning import Trainer
 from scipy.spatial.transform import Rotation
 from test_data_synthetic import make_shards
+from test_predictor import fit_and_save
 
 from defgraspnets.data.datamodule import GraspDataModule
 from defgraspnets.grasp.datagen import structured_box
@@ -333,20 +333,8 @@ def test_simulated_grasps_score_the_field_the_model_predicts(box, grasps):
 @pytest.fixture(scope="module")
 def checkpoint(data):
     root, dm = data
-    module = DefGraspNetsModule(latent=16, num_blocks=2, lr=1e-3)
-    trainer = Trainer(
-        max_steps=2,
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        limit_val_batches=1,
-        num_sanity_val_steps=0,
-        accelerator="cpu",
-    )
-    trainer.fit(module, datamodule=dm)
     ckpt = root / "model.ckpt"
-    trainer.save_checkpoint(ckpt)
+    fit_and_save(DefGraspNetsModule(latent=16, num_blocks=2, lr=1e-3), dm, ckpt, steps=2)
     return ckpt
 
 

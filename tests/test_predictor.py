@@ -16,6 +16,22 @@ from defgraspnets.models.predictor import DefGraspNetsPredictor, FingerGeometry,
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
+def fit_and_save(module: DefGraspNetsModule, dm: GraspDataModule, path, steps: int) -> None:
+    """Fit ``module`` for ``steps`` optimizer steps with Lightning on the CPU and save its checkpoint."""
+    trainer = Trainer(
+        max_steps=steps,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        limit_val_batches=1,
+        num_sanity_val_steps=0,
+        accelerator="cpu",
+    )
+    trainer.fit(module, datamodule=dm)
+    trainer.save_checkpoint(path)
+
+
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
     """A tiny module fitted for a few steps with Lightning, and its saved checkpoint."""
@@ -27,19 +43,8 @@ def trained(tmp_path_factory):
         contact_radius=0.004,
     )
     module = DefGraspNetsModule(latent=16, num_blocks=2, lr=1e-3)
-    trainer = Trainer(
-        max_steps=3,
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        limit_val_batches=1,
-        num_sanity_val_steps=0,
-        accelerator="cpu",
-    )
-    trainer.fit(module, datamodule=dm)
     path = root / "model.ckpt"
-    trainer.save_checkpoint(path)
+    fit_and_save(module, dm, path, steps=3)
     return module.eval(), dm, path
 
 
@@ -63,19 +68,8 @@ def test_global_context_checkpoint_round_trip(trained, tmp_path):
     a checkpoint saved without the key (all earlier ones) loads without it."""
     _, dm, path = trained
     module = DefGraspNetsModule(latent=16, num_blocks=2, global_context=True)
-    trainer = Trainer(
-        max_steps=2,
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        limit_val_batches=1,
-        num_sanity_val_steps=0,
-        accelerator="cpu",
-    )
-    trainer.fit(module, datamodule=dm)
     saved = tmp_path / "context.ckpt"
-    trainer.save_checkpoint(saved)
+    fit_and_save(module, dm, saved, steps=2)
     predictor = DefGraspNetsPredictor.from_checkpoint(saved)
     assert len(predictor.net.networks[0].global_blocks) == 2
     batch = next(iter(dm.val_dataloader()))
