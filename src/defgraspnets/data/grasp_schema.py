@@ -738,8 +738,9 @@ class GraspShard:
             self._pid = os.getpid()
         return self._file
 
-    def fields(self, k: int, g: int, s: int) -> tuple[np.ndarray, np.ndarray]:
-        """Von Mises stress (N,) [Pa] and displacement (N, 3) [m] of entry ``(k, g, s)`` (float32)."""
+    def fields(self, k: int, g: int, s: int | slice) -> tuple[np.ndarray, np.ndarray]:
+        """Von Mises stress (N,) [Pa] and displacement (N, 3) [m] of entry ``(k, g, s)`` (float32); a slice
+        ``s`` reads those steps in one read, (S', N) and (S', N, 3)."""
         f = self._handle()
         return f["ramp/von_mises"][k, g, s], f["ramp/displacement"][k, g, s]
 

@@ -39,7 +39,7 @@ from lightning import LightningModule
 
 from defgraspnets.eval.metrics import FieldMetrics, PerSampleSums
 from defgraspnets.models.graph import DEFAULT_CONTACT_RADIUS, GraspGraph
-from defgraspnets.models.meshgraphnet import DefGraspNet
+from defgraspnets.models.meshgraphnet import DefGraspNet, graph_mean
 
 __all__ = ["DefGraspNetsModule", "LossSums"]
 
@@ -252,16 +252,13 @@ class DefGraspNetsModule(LightningModule):
         mask_s, mask_d = masks if masks is not None else self.net.loss_mask(batch)
         graph, b = batch.node_graph(), batch.graph_count
 
-        def graph_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-            idx = graph[mask]
-            total = values.new_zeros(b).index_add_(0, idx, values)
-            count = values.new_zeros(b).index_add_(0, idx, torch.ones_like(values))
-            return total[count > 0] / count[count > 0]
+        def means(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+            # per-graph means over the masked nodes, for the graphs that have any
+            mean, count = graph_mean(values, graph[mask], b)
+            return mean[count > 0]
 
-        stress = graph_mean(pred[mask_s, 0], mask_s) - graph_mean(target[mask_s, 0], mask_s)
-        disp = graph_mean(pred[mask_d, 1:].norm(dim=1), mask_d) - graph_mean(
-            target[mask_d, 1:].norm(dim=1), mask_d
-        )
+        stress = means(pred[mask_s, 0], mask_s) - means(target[mask_s, 0], mask_s)
+        disp = means(pred[mask_d, 1:].norm(dim=1), mask_d) - means(target[mask_d, 1:].norm(dim=1), mask_d)
         return stress.square().mean() + disp.square().mean()
 
     def training_step(self, batch: GraspGraph, batch_idx: int) -> torch.Tensor:

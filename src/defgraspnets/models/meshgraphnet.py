@@ -58,7 +58,15 @@ from defgraspnets.data.normalization import Normalizer, TargetScaling
 from defgraspnets.models.fused_message_passing import fused_edge_update, fused_node_update
 from defgraspnets.models.graph import NODE_FINGER, GraspGraph, MultigraphFeaturizer
 
-__all__ = ["DefGraspNet", "EdgeMLP", "EncodeProcessDecode", "GlobalContext", "MLP", "ProcessorBlock"]
+__all__ = [
+    "DefGraspNet",
+    "EdgeMLP",
+    "EncodeProcessDecode",
+    "GlobalContext",
+    "MLP",
+    "ProcessorBlock",
+    "graph_mean",
+]
 
 
 class MLP(nn.Sequential):
@@ -174,6 +182,19 @@ class ProcessorBlock(nn.Module):
         return fused_node_update(self.node, node, mesh_sum, contact_sum), mesh, contact
 
 
+def graph_mean(values: Tensor, node_graph: Tensor, num_graphs: int) -> tuple[Tensor, Tensor]:
+    """Mean of ``values`` (n, ...) over the nodes of each graph, (num_graphs, ...) in ``values``' dtype
+    (accumulated in >= fp32), and the node count of each graph (num_graphs,); ``node_graph`` (n,) is the
+    graph index of every node. A graph without nodes has mean 0."""
+    acc = torch.promote_types(values.dtype, torch.float32)
+    sums = values.new_zeros((num_graphs, *values.shape[1:]), dtype=acc)
+    sums.index_add_(0, node_graph, values.to(acc))
+    counts = values.new_zeros(num_graphs, dtype=acc)
+    counts.index_add_(0, node_graph, torch.ones_like(node_graph, dtype=acc))
+    scale = counts.clamp_min(1.0).view(num_graphs, *(1,) * (values.dim() - 1))
+    return (sums / scale).to(values.dtype), counts
+
+
 class GlobalContext(nn.Module):
     """Graph-level context added to every node: ``h_i <- h_i + f_U(mean_{j in g(i)} h_j)``.
 
@@ -186,12 +207,7 @@ class GlobalContext(nn.Module):
         self.mlp = MLP(latent, latent, latent, hidden_layers, layer_norm=True)
 
     def forward(self, node: Tensor, node_graph: Tensor, num_graphs: int) -> Tensor:
-        acc = torch.promote_types(node.dtype, torch.float32)
-        sums = torch.zeros(num_graphs, node.shape[1], dtype=acc, device=node.device)
-        sums.index_add_(0, node_graph, node.to(acc))
-        counts = torch.zeros(num_graphs, dtype=acc, device=node.device)
-        counts.index_add_(0, node_graph, torch.ones_like(node_graph, dtype=acc))
-        mean = (sums / counts.clamp_min(1.0).unsqueeze(1)).to(node.dtype)
+        mean, _ = graph_mean(node, node_graph, num_graphs)
         return node + self.mlp(mean).index_select(0, node_graph)
 
 
