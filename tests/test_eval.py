@@ -112,7 +112,7 @@ def test_field_metrics_in_physical_units():
     m = FieldMetrics()
     m.update(pred_s, pred_d, _batch(true_s, true_d))
     out = m.compute()
-    assert out["samples"] == 2 and out["mae_stress_pa"] == pytest.approx(100.0)
+    assert out["samples"] == 2 and out["nodes"] == 6 and out["mae_stress_pa"] == pytest.approx(100.0)
     assert out["mae_stress_kpa"] == pytest.approx(0.1)
     assert out["mae_displacement_mm"] == pytest.approx(1.0)
     x = np.array([1, 2, 3, 4, 5, 6]) * 1e-3

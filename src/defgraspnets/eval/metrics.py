@@ -85,8 +85,7 @@ def _cluster_bootstrap_interval(
     taus: np.ndarray, clusters: np.ndarray, level: float = 0.95, resamples: int = 2000, seed: int = 0
 ) -> tuple[float, float]:
     """:func:`kendall_tau_interval` of group taus ``taus`` (m,) in clusters ``clusters`` (m,)."""
-    if not 0.0 < level < 1.0:
-        raise ValueError(f"level must lie in (0, 1), got {level}")
+    _check_level(level)
     if not len(taus):
         return float("nan"), float("nan")
     _, cluster_of_group = np.unique(clusters, return_inverse=True)
@@ -96,11 +95,30 @@ def _cluster_bootstrap_interval(
         return float("nan"), float("nan")
     tau_sum = np.bincount(cluster_of_group, weights=taus, minlength=num_clusters)
     count = np.bincount(cluster_of_group, minlength=num_clusters).astype(np.float64)
-    draws = np.random.default_rng(seed).integers(0, num_clusters, size=(resamples, num_clusters))
-    means = tau_sum[draws].sum(axis=1) / count[draws].sum(axis=1)
+    means = cluster_bootstrap_means(tau_sum, count, resamples, seed)
     alpha = (1.0 - level) / 2.0
     low, high = np.quantile(means, [alpha, 1.0 - alpha])
     return float(low), float(high)
+
+
+def _check_level(level: float) -> None:
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must lie in (0, 1), got {level}")
+
+
+def cluster_bootstrap_means(sums, counts, resamples: int = 2000, seed: int = 0) -> np.ndarray:
+    """(resamples,) weighted means of a cluster bootstrap: each resample draws as many clusters as there are,
+    with replacement, and returns ``sum(sums[drawn]) / sum(counts[drawn])``.
+
+    ``sums`` (K,): each cluster's total (e.g. the sum of its group taus); ``counts`` (K,): its weight (e.g.
+    its number of groups). The same seed draws the same clusters for any two inputs of one size, which is
+    what a paired comparison of two models on the same clusters needs."""
+    sums = np.asarray(sums, dtype=np.float64).ravel()
+    counts = np.asarray(counts, dtype=np.float64).ravel()
+    if sums.shape != counts.shape:
+        raise ValueError(f"sums and counts differ in shape: {sums.shape} vs {counts.shape}")
+    draws = np.random.default_rng(seed).integers(0, len(sums), size=(resamples, len(sums)))
+    return sums[draws].sum(axis=1) / counts[draws].sum(axis=1)
 
 
 def ranking_agreement_across_moduli(values, converged, min_grasps: int = 3) -> tuple[float, int]:
@@ -269,6 +287,7 @@ class FieldMetrics(PerSampleSums):
         mae_pa = float(a["stress_abs_err"].sum() / n)
         return {
             "samples": int(len(a["nodes"])),
+            "nodes": int(n),  # object nodes over all samples: the weight of the MAEs
             "tau_groups": int(groups_s),
             "tau_s": tau_s,
             "tau_d": tau_d,
