@@ -204,3 +204,61 @@ def test_displacement_target_config_errors(shards, data_dir):
         GraspDataModule(str(data_dir), displacement="x")
     with pytest.raises(ValueError, match="data.ramp_stride"):
         GraspDataModule(str(data_dir), displacement="rigid_removed", ramp_stride=1)
+
+
+def _axis_infos():
+    """Two objects of 16 grasps in 6 axes (4, 4, 2, 2, 3, 1 rotations), 2 moduli, every squeeze solved."""
+    axis = np.array([0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 3, 3, 4, 4, 4, 5])
+    return [
+        ShardInfo(name, "cuboid", "primitive", np.array([1e5, 1e6]), np.zeros((2, 16), np.int8), axis)
+        for name in ("cuboid_a", "cuboid_b")
+    ]
+
+
+def _axes(entries, infos):
+    return {(infos[sh].object_name, int(infos[sh].grasp_axis[g])) for sh, _, g in entries}
+
+
+def test_axis_holdout_keeps_every_grasp_axis_on_one_side():
+    infos = _axis_infos()
+    for seed in range(5):
+        s = make_split(infos, "unseen_grasps", seed=seed, holdout="axis")
+        train, val, test = (_axes(getattr(s, p), infos) for p in ("train", "val", "test"))
+        assert test and val and train
+        assert not (train | val) & test and not train & val
+        assert {n for n, _ in test} == {"cuboid_a", "cuboid_b"}
+        # one of six axes is 0.2 of them (rounded): every rotation about it
+        for name in ("cuboid_a", "cuboid_b"):
+            assert len({a for n, a in test if n == name}) == 1
+    # holding out single grasps leaves siblings of test grasps in training (what holdout=axis prevents)
+    leaks = 0
+    for seed in range(5):
+        s = make_split(infos, "unseen_grasps", seed=seed, holdout="grasp")
+        leaks += len(_axes(s.train, infos) & _axes(s.test, infos))
+        # the grasps themselves are disjoint either way
+        assert not _keys_of(s.train) & _keys_of(s.test)
+    assert leaks > 0
+    with pytest.raises(ValueError, match="unknown holdout"):
+        make_split(infos, "unseen_grasps", holdout="rotation")
+    no_axes = [ShardInfo(i.object_name, i.category, i.source, i.youngs_modulus, i.status) for i in infos]
+    with pytest.raises(ValueError, match="cuboid_a: no grasp axes known"):
+        make_split(no_axes, "unseen_grasps", holdout="axis")
+
+
+def _keys_of(entries):
+    return {(int(sh), int(g)) for sh, _, g in entries}
+
+
+def test_grasp_axis_ids_group_the_samplers_rotations():
+    from defgraspnets.data.splits import grasp_axis_ids
+    from defgraspnets.grasp.datagen import structured_box
+    from defgraspnets.grasp.sampler import sample_antipodal_grasps
+    from defgraspnets.grasp.squeeze import finger_contact_poses
+
+    box = structured_box((0.04, 0.03, 0.02), (4, 3, 2))
+    grasps = sample_antipodal_grasps(box, num_grasps=16, seed=0)
+    closing = finger_contact_poses(grasps)[:, :, :3, 1]  # each pad closes along its frame's +y
+    ids = grasp_axis_ids(grasps.poses, closing)
+    # the same partition as the sampler's own axis ids
+    pairs = {(int(a), int(b)) for a, b in zip(ids, grasps.axis_ids)}
+    assert len(pairs) == len(set(ids.tolist())) == len(set(grasps.axis_ids.tolist())) < 16

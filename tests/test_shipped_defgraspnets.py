@@ -149,4 +149,6 @@ def test_multi_object_checkpoint_recipe_is_an_experiment_config():
     data = ckpt["datamodule_hyper_parameters"]
     for key in ("split", "batch_size", "train_steps", "eval_steps", "displacement", "contact_radius", "seed"):
         assert cfg.data[key] == data[key], key
+    # trained before data.holdout existed (single grasps held out): the recipe says so to rebuild its split
+    assert cfg.data.holdout == data.get("holdout", "grasp") == "grasp"
     assert cfg.trainer.max_epochs == ckpt["hyper_parameters"]["lr_decay_epochs"] == 40

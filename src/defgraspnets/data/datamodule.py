@@ -55,6 +55,10 @@ class GraspDataModule(LightningDataModule):
         batch_size: graphs per training batch (thesis: 1). eval_batch_size: default ``batch_size``.
         num_workers, pin_memory, persistent_workers: DataLoader options.
         statistics_samples: training samples used for the normalization statistics.
+        holdout: ``"axis"`` holds out whole grasp axes (unseen-grasps test part and validation),
+            ``"grasp"`` single grasps (the default here, so that checkpoints saved before the key existed
+            rebuild their split; the Hydra config defaults to ``axis``). See
+            :func:`~defgraspnets.data.splits.make_split`.
     """
 
     def __init__(
@@ -79,6 +83,7 @@ class GraspDataModule(LightningDataModule):
         pin_memory: bool = False,
         persistent_workers: bool = False,
         statistics_samples: int = 512,
+        holdout: str = "grasp",
     ):
         super().__init__()
         if split not in SPLITS:
@@ -125,6 +130,7 @@ class GraspDataModule(LightningDataModule):
             hp.val_fraction,
             self.test_objects,
             self.train_objects,
+            hp.holdout,
         )
         for part, steps in (("train", self.train_steps), ("val", self.eval_steps), ("test", self.eval_steps)):
             samples = sample_index(shards, getattr(self.split, part), steps)
