@@ -15,6 +15,8 @@ Entries are solved squeezes ``(shard, k, g)``; each split keeps all ramp steps o
 Validation is carved from the training entries at the grasp level (``val_fraction`` of each object's
 training grasps, and at least two of an object with four or more, so that the validation Kendall tau has
 grasps to rank), so ``val`` always measures level-1 generalization and ``test`` the chosen level.
+Randomness is seeded per object/category name (``seed`` and a CRC of the name), so adding an object does
+not reshuffle the others.
 
 ``holdout="axis"`` holds out whole grasp axes at level 1 and in validation instead of single grasps. The
 antipodal sampler makes up to 4 grasps per axis (the same contact points, the approach turned about the
@@ -22,8 +24,6 @@ axis), so a single held-out grasp usually has siblings in training. Measured (se
 ``benchmarks/defgraspnets_long_training_h100.md``): the 18-object checkpoint, trained on a per-grasp split,
 ranks its test grasps at 15 N with tau_s 0.79, but 12 new grasps (new axes) on each of 6 of its training
 meshes with tau_s 0.22 on average.
-Randomness is seeded per object/category name (``seed`` and a CRC of the name), so adding an object does
-not reshuffle the others.
 """
 
 from __future__ import annotations
@@ -151,7 +151,10 @@ def _grasp_holdout(
         return entries, entries[held]
     unit = entries[:, 2]
     if holdout == "axis":
-        unit = np.array([_axis_of(infos[sh], g) for sh, g in entries[:, [0, 2]]], dtype=np.int64)
+        unit = np.empty(len(entries), dtype=np.int64)
+        for sh in np.unique(entries[:, 0]):
+            on = entries[:, 0] == sh
+            unit[on] = _grasp_axes(infos[sh])[entries[on, 2]]
     key = entries[:, 0] * 1_000_000 + unit
     names = np.array([infos[sh].object_name for sh in entries[:, 0]])
     for name in np.unique(names):
@@ -168,10 +171,10 @@ def _grasp_holdout(
     return entries[~held], entries[held]
 
 
-def _axis_of(info: ShardInfo, g: int) -> int:
+def _grasp_axes(info: ShardInfo) -> np.ndarray:
     if info.grasp_axis is None:
         raise ValueError(f"{info.object_name}: no grasp axes known, cannot hold out by axis")
-    return int(info.grasp_axis[g])
+    return np.asarray(info.grasp_axis, dtype=np.int64)
 
 
 def make_split(

@@ -20,7 +20,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .metrics import _check_level, cluster_bootstrap_means
+from .metrics import check_level, cluster_bootstrap_means, percentile_interval
 
 __all__ = ["COMPARED_METRICS", "COMPARISON_COLUMNS", "compare_evaluations", "paired_difference"]
 
@@ -58,7 +58,7 @@ def paired_difference(
     Returns ``difference``, ``ci_low``, ``ci_high``, and ``fraction_positive`` and ``fraction_negative``
     (the shares of resamples whose difference is > 0 and < 0). NaN for those with a single cluster.
     """
-    _check_level(level)
+    check_level(level)
     a = np.asarray(values_a, dtype=np.float64).ravel()
     b = np.asarray(values_b, dtype=np.float64).ravel()
     w = np.asarray(weights, dtype=np.float64).ravel()
@@ -82,12 +82,11 @@ def paired_difference(
             "fraction_negative": nan,
         }
     means = cluster_bootstrap_means(sums, w, resamples, seed)
-    alpha = (1.0 - level) / 2.0
-    low, high = np.quantile(means, [alpha, 1.0 - alpha])
+    low, high = percentile_interval(means, level)
     return {
         "difference": difference,
-        "ci_low": float(low),
-        "ci_high": float(high),
+        "ci_low": low,
+        "ci_high": high,
         "fraction_positive": float(np.mean(means > 0.0)),
         "fraction_negative": float(np.mean(means < 0.0)),
     }

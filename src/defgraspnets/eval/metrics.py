@@ -85,7 +85,7 @@ def _cluster_bootstrap_interval(
     taus: np.ndarray, clusters: np.ndarray, level: float = 0.95, resamples: int = 2000, seed: int = 0
 ) -> tuple[float, float]:
     """:func:`kendall_tau_interval` of group taus ``taus`` (m,) in clusters ``clusters`` (m,)."""
-    _check_level(level)
+    check_level(level)
     if not len(taus):
         return float("nan"), float("nan")
     _, cluster_of_group = np.unique(clusters, return_inverse=True)
@@ -95,15 +95,21 @@ def _cluster_bootstrap_interval(
         return float("nan"), float("nan")
     tau_sum = np.bincount(cluster_of_group, weights=taus, minlength=num_clusters)
     count = np.bincount(cluster_of_group, minlength=num_clusters).astype(np.float64)
-    means = cluster_bootstrap_means(tau_sum, count, resamples, seed)
-    alpha = (1.0 - level) / 2.0
-    low, high = np.quantile(means, [alpha, 1.0 - alpha])
-    return float(low), float(high)
+    return percentile_interval(cluster_bootstrap_means(tau_sum, count, resamples, seed), level)
 
 
-def _check_level(level: float) -> None:
+def check_level(level: float) -> None:
+    """Raise ValueError unless ``level`` (a confidence level) lies in (0, 1)."""
     if not 0.0 < level < 1.0:
         raise ValueError(f"level must lie in (0, 1), got {level}")
+
+
+def percentile_interval(samples: np.ndarray, level: float = 0.95) -> tuple[float, float]:
+    """(low, high): the central ``level`` percentile interval of bootstrap ``samples``."""
+    check_level(level)
+    alpha = (1.0 - level) / 2.0
+    low, high = np.quantile(samples, [alpha, 1.0 - alpha])
+    return float(low), float(high)
 
 
 def cluster_bootstrap_means(sums, counts, resamples: int = 2000, seed: int = 0) -> np.ndarray:
