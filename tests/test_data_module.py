@@ -262,3 +262,32 @@ def test_grasp_axis_ids_group_the_samplers_rotations():
     # the same partition as the sampler's own axis ids
     pairs = {(int(a), int(b)) for a, b in zip(ids, grasps.axis_ids)}
     assert len(pairs) == len(set(ids.tolist())) == len(set(grasps.axis_ids.tolist())) < 16
+
+
+def _sample_rows(dataset) -> list[tuple]:
+    return [tuple(int(v) for v in row) for row in dataset.samples]
+
+
+@pytest.mark.parametrize("split", ["unseen_grasps", "unseen_objects"])
+def test_all_part_holds_every_solved_squeeze(data_dir, shards, split):
+    """The "all" part (scripts/evaluate.py part=all) is every solved entry of the data at the evaluation
+    steps, once: for unseen_grasps the union of train, val and test; for unseen_objects also the real
+    object the level does not use. Failed ramps are never part of it."""
+    dm = GraspDataModule(str(data_dir), split=split, eval_steps=[-1], train_steps=[-1])
+    dm.setup("test")
+    solved = {(sh, int(k), int(g)) for sh, s in enumerate(dm.shards) for k, g in np.argwhere(s.status == 0)}
+    assert {tuple(int(v) for v in e) for e in dm.split.solved} == solved
+    assert len(dm.split.solved) == len(solved)
+    rows = _sample_rows(dm.datasets["all"])
+    assert len(rows) == len(set(rows)) == len(solved)  # one eval step, no duplicate
+    assert {r[:3] for r in rows} == solved and {r[3] for r in rows} == {2}  # 3 steps: [-1] is step 2
+    assert (0, 1, 2) not in {r[:3] for r in rows} and dm.shards[0].status[1, 2] != 0
+    parts = [r for p in ("train", "val", "test") for r in _sample_rows(dm.datasets[p])]
+    assert len(parts) == len(set(parts))
+    if split == "unseen_grasps":
+        assert set(parts) == set(rows)
+    else:
+        real = {sh for sh, s in enumerate(dm.shards) if s.object.source == "real"}
+        assert real and set(parts) == {r for r in rows if r[0] not in real}
+        assert {r[0] for r in rows} >= real
+    assert dm.summary()["samples"]["all"] == len(rows)

@@ -175,7 +175,32 @@ def test_evaluate_script_on_the_training_part(first_run, data_root):
     assert runs["train"]["samples"] == len(dm.datasets["train"]) > runs["test"]["samples"] > 0
     assert (data_root / "eval_part_train" / "fields_unseen_grasps_train_0_stress.png").exists()
     bad = _evaluate(first_run, data_root / "eval_part_bad", "part=training")
-    assert bad.returncode != 0 and "part='training': choose test, val or train" in bad.stderr
+    assert bad.returncode != 0 and "part='training': choose one of test, val, train, all" in bad.stderr
+
+
+def test_evaluate_script_on_every_squeeze_of_new_data(first_run, data_root):
+    """part=all on a data directory the checkpoint never saw: every solved squeeze at the evaluation steps,
+    and object rows that claim no nearest training object."""
+    from defgraspnets.data.dataset import discover_shards
+    from defgraspnets.data.grasp_schema import GraspShard
+
+    fresh = make_shards(data_root / "fresh_grasps", grasps=4, num_steps=2)  # one failed ramp
+    solved = sum(int((GraspShard(p).status == 0).sum()) for p in discover_shards(fresh))
+    out = data_root / "eval_part_all"
+    r = _evaluate(first_run, out, "part=all", f"data.data_dir={fresh}", "plots=0")
+    assert r.returncode == 0, r.stderr[-4000:]
+    results = json.loads((out / "results.json").read_text())
+    (level,) = results["levels"]
+    assert level["split"] == "unseen_grasps/all"
+    assert level["samples"] == solved * 1  # data.eval_steps=[-1]: one step per solved ramp
+    assert len(results["objects"]) == 6
+    for row in results["objects"]:  # NaN is written as null
+        assert row["split"] == "unseen_grasps/all"
+        assert row["nearest_train_object"] is None and row["chamfer_mm"] is None
+    bad = _evaluate(first_run, data_root / "eval_part_bogus", "part=bogus")
+    assert (
+        bad.returncode != 0 and "ValueError: part='bogus': choose one of test, val, train, all" in bad.stderr
+    )
 
 
 def test_evaluate_refuses_another_displacement_target(first_run, data_root):

@@ -132,8 +132,15 @@ class GraspDataModule(LightningDataModule):
             self.train_objects,
             hp.holdout,
         )
-        for part, steps in (("train", self.train_steps), ("val", self.eval_steps), ("test", self.eval_steps)):
-            samples = sample_index(shards, getattr(self.split, part), steps)
+        # "all": every solved squeeze of the data, whatever the split (scripts/evaluate.py part=all)
+        parts = {
+            "train": (self.split.train, self.train_steps),
+            "val": (self.split.val, self.eval_steps),
+            "test": (self.split.test, self.eval_steps),
+            "all": (self.split.solved, self.eval_steps),
+        }
+        for part, (entries, steps) in parts.items():
+            samples = sample_index(shards, entries, steps)
             self.datasets[part] = GraspFieldDataset(
                 shards,
                 samples,

@@ -95,7 +95,8 @@ def grasp_axis_ids(
 
 @dataclass
 class Split:
-    """Entries (P, 3) ``(shard, k, g)`` of each part, and the object names of train and test."""
+    """Entries (P, 3) ``(shard, k, g)`` of each part, and the object names of train and test; ``solved``
+    holds every solved entry of the data, whatever the part (objects a level does not use included)."""
 
     name: str
     train: np.ndarray
@@ -103,6 +104,7 @@ class Split:
     test: np.ndarray
     train_objects: list[str] = field(default_factory=list)
     test_objects: list[str] = field(default_factory=list)
+    solved: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.int64))
 
     def summary(self) -> dict:
         return {
@@ -281,4 +283,4 @@ def make_split(
             f"split {split!r}: no validation grasps (objects need >= 2 training grasps); "
             "set val_fraction=0 to train without validation"
         )
-    return Split(split, train, val, test, list(train_names), list(test_names))
+    return Split(split, train, val, test, list(train_names), list(test_names), all_entries)
