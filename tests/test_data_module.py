@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import h5py
 import numpy as np
 import pytest
@@ -243,6 +245,27 @@ def test_axis_holdout_keeps_every_grasp_axis_on_one_side():
     no_axes = [ShardInfo(i.object_name, i.category, i.source, i.youngs_modulus, i.status) for i in infos]
     with pytest.raises(ValueError, match="cuboid_a: no grasp axes known"):
         make_split(no_axes, "unseen_grasps", holdout="axis")
+
+
+def test_axis_holdout_warns_when_a_part_ranks_rotations_about_one_axis(caplog):
+    # 6 axes per object: the test part holds one (its tau would rank 4 rotations of one axis), and so does
+    # the validation part (0.1 of the 5 left, at least one)
+    with caplog.at_level(logging.WARNING, logger="defgraspnets.data.splits"):
+        make_split(_axis_infos(), "unseen_grasps", holdout="axis")
+    msgs = [r.getMessage() for r in caplog.records if "rotations about that axis" in r.getMessage()]
+    assert len(msgs) == 2 and "test part" in msgs[0] and "val part" in msgs[1]
+    assert "2 object(s) (cuboid_a, cuboid_b)" in msgs[0]
+    # 20 axes per object: 4 test axes, 2 validation axes; single grasps: never this warning
+    axis = np.repeat(np.arange(20), 2)
+    many = [
+        ShardInfo(n, "cuboid", "primitive", np.array([1e6]), np.zeros((1, 40), np.int8), axis) for n in "ab"
+    ]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="defgraspnets.data.splits"):
+        s = make_split(many, "unseen_grasps", holdout="axis")
+        make_split(_axis_infos(), "unseen_grasps", holdout="grasp")
+    assert len(_axes(s.test, many)) == 8 and len(_axes(s.val, many)) == 4
+    assert not [r for r in caplog.records if "rotations about that axis" in r.getMessage()]
 
 
 def _keys_of(entries):

@@ -159,6 +159,7 @@ def _grasp_holdout(
             unit[on] = _grasp_axes(infos[sh])[entries[on, 2]]
     key = entries[:, 0] * 1_000_000 + unit
     names = np.array([infos[sh].object_name for sh in entries[:, 0]])
+    single_axis = []
     for name in np.unique(names):
         on = names == name
         units = np.unique(key[on])
@@ -170,6 +171,17 @@ def _grasp_holdout(
             count = max(count, minimum)
         pick = units[_rng(seed, f"{what}/{name}").permutation(len(units))[:count]]
         held |= on & np.isin(key, pick)
+        if holdout == "axis" and count == 1:
+            single_axis.append(str(name))
+    if single_axis:
+        log.warning(
+            "the %s part holds out one grasp axis of %d object(s) (%s): its Kendall tau ranks only the "
+            "rotations about that axis, not grasps across the object; generate more axes per object, or "
+            "evaluate on grasps drawn with another datagen seed (scripts/evaluate.py part=all)",
+            what,
+            len(single_axis),
+            ", ".join(single_axis),
+        )
     return entries[~held], entries[held]
 
 
