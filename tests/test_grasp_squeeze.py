@@ -49,13 +49,14 @@ def test_squeeze_options_and_bad_force():
     assert squeeze_solver_options().contact_smoothing == pytest.approx(1e-2)
     assert squeeze_solver_options().rtol == pytest.approx(1e-5)
     assert squeeze_solver_options(linear_solver="cg").linear_solver == "cg"
-    # released increment stabilization by default (exact equilibria); the experiments keep the plain solve
+    # released increment stabilization by default (exact equilibria), in the experiments too
     default = squeeze_solver_options()
     assert default.stabilization == pytest.approx(1e-4) and default.stabilization_release
     assert squeeze_solver_options(stabilization=None).stabilization == pytest.approx(1e-4)
     from defgraspnets.grasp.experiments import experiment_solver_options
 
-    assert experiment_solver_options().stabilization == 0.0
+    assert experiment_solver_options().stabilization == pytest.approx(1e-4)
+    assert experiment_solver_options().stabilization_release
     mesh = fem.TetMesh.box(size=SIZE, divisions=(2, 2, 2), origin=-SIZE / 2)
     grasps = sample_antipodal_grasps(mesh, num_grasps=1, seed=0)
     solver = make_squeeze_solver(mesh, grasps, fem.Material(2e5, 0.3, 1000.0), device="cpu")
@@ -115,6 +116,8 @@ def test_damped_exact_newton_passes_a_soft_grasp_that_stalls_undamped(monkeypatc
         contact_smoothing=1e-3,
         relag_friction_on_retry=False,
         max_factor_reuse=0,
+        stabilization=0.0,  # the plain solve (released stabilization also passes this grasp undamped)
+        stabilization_release=False,
     )
 
     def ramp():
@@ -141,7 +144,10 @@ def test_damping_is_capped_so_a_tilted_stiff_grasp_keeps_its_newton_budget(monke
     grasps = sample_antipodal_grasps(mesh, num_grasps=100, seed=0)[[58]]
     material = fem.Material(2e5, 0.3, 1000.0, model="neohookean")
     # measured with the 1e-3 h contact onset (with 1e-2 h, the default since, it reaches 15 N either way)
-    options = squeeze_solver_options(linear_solver="direct", contact_smoothing=1e-3)
+    # and the plain solve (the squeeze default since session 24 adds released stabilization)
+    options = squeeze_solver_options(
+        linear_solver="direct", contact_smoothing=1e-3, stabilization=0.0, stabilization_release=False
+    )
 
     def ramp():
         solver = make_squeeze_solver(mesh, grasps, material, 0.7, device="cpu", options=options)
