@@ -118,6 +118,7 @@ def test_damped_exact_newton_passes_a_soft_grasp_that_stalls_undamped(monkeypatc
         max_factor_reuse=0,
         stabilization=0.0,  # the plain solve (released stabilization also passes this grasp undamped)
         stabilization_release=False,
+        max_step_fraction=0.1,  # the engine's step cap it was measured with (the squeeze's 1 % came later)
     )
 
     def ramp():
@@ -146,7 +147,11 @@ def test_damping_is_capped_so_a_tilted_stiff_grasp_keeps_its_newton_budget(monke
     # measured with the 1e-3 h contact onset (with 1e-2 h, the default since, it reaches 15 N either way)
     # and the plain solve (the squeeze default since session 24 adds released stabilization)
     options = squeeze_solver_options(
-        linear_solver="direct", contact_smoothing=1e-3, stabilization=0.0, stabilization_release=False
+        linear_solver="direct",
+        contact_smoothing=1e-3,
+        stabilization=0.0,
+        stabilization_release=False,
+        max_step_fraction=0.1,  # the engine's step cap it was measured with (the squeeze's 1 % came later)
     )
 
     def ramp():
