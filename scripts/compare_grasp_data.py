@@ -33,9 +33,9 @@ def main(cfg: DictConfig) -> None:
     rows = compare_grasp_data(cfg.a, cfg.b, step=cfg.step, progress=True)
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    text = comparison_markdown(rows, str(cfg.a), str(cfg.b), **tolerances)
-    (out / f"{cfg.name}.md").write_text(text)
     summary = pooled_summary(rows, **tolerances)
+    text = comparison_markdown(rows, str(cfg.a), str(cfg.b), summary=summary)
+    (out / f"{cfg.name}.md").write_text(text)
     write_json(
         out / f"{cfg.name}.json",
         {"a": str(cfg.a), "b": str(cfg.b), "step": cfg.step, "all": summary, "shards": rows},

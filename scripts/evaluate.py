@@ -98,10 +98,8 @@ def evaluate_checkpoint(ckpt_path: str, cfg: DictConfig, out_dir: Path) -> tuple
     # Table 7.1: per test object, with its Chamfer distance to the nearest training object. part=all: the
     # split rebuilt on foreign data says nothing of the checkpoint's real training objects: no nearest one
     train_objects = [] if cfg.part == "all" else dm.split.train_objects
-    samples = {
-        name: surface_samples(*dm.object_surface(name), count=cfg.chamfer_samples)
-        for name in (sorted(set(train_objects) | set(dm.split.test_objects)) if train_objects else [])
-    }
+    sampled = sorted(set(train_objects) | set(dm.split.test_objects)) if train_objects else []
+    samples = {name: surface_samples(*dm.object_surface(name), count=cfg.chamfer_samples) for name in sampled}
     rows = []
     for oid, values in metrics.compute_per_object().items():
         name = dm.object_names[oid]

@@ -17,6 +17,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 from tqdm.auto import tqdm
 
 from defgraspnets.eval.metrics import kendall_tau
@@ -33,12 +34,8 @@ RAMP_METRICS = ("mean_stress_rel", "stress_field_rel", "deformation_rel", "rotat
 
 
 def _rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
-    """Angle of the relative rotation Ra^T Rb [deg], by atan2 of its sine (skew part) and cosine (trace):
-    accurate near 0, where arccos of the trace alone loses half the digits."""
-    M = Ra.T @ Rb
-    sin = np.linalg.norm([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]]) / 2.0
-    cos = (np.trace(M) - 1.0) / 2.0
-    return float(np.degrees(np.arctan2(sin, cos)))
+    """Angle of the relative rotation Ra^T Rb [deg] (scipy's rotation magnitude: accurate near 0)."""
+    return float(np.degrees(Rotation.from_matrix(Ra.T @ Rb).magnitude()))
 
 
 def _check_same_grasps(a: GraspShard, b: GraspShard, atol: float) -> None:
@@ -213,8 +210,11 @@ _ROW_COLUMNS = (
 )
 
 
-def comparison_markdown(rows: list[dict], a: str = "A", b: str = "B", **tolerances) -> str:
-    """Per-object table and a pooled line (:func:`pooled_summary`) of :func:`compare_grasp_data` rows."""
+def comparison_markdown(
+    rows: list[dict], a: str = "A", b: str = "B", summary: dict | None = None, **tolerances
+) -> str:
+    """Per-object table and a pooled line of :func:`compare_grasp_data` rows; ``summary``: their
+    :func:`pooled_summary` if already computed (else computed here with ``tolerances``)."""
     flat = []
     for row in rows:
         vals = {m: np.array([r[m] for r in row["ramps"]], dtype=np.float64) for m in RAMP_METRICS}
@@ -225,7 +225,7 @@ def comparison_markdown(rows: list[dict], a: str = "A", b: str = "B", **toleranc
                 **{f"max_{m}": float(v.max()) if len(v) else float("nan") for m, v in vals.items()},
             }
         )
-    s = pooled_summary(rows, **tolerances)
+    s = summary if summary is not None else pooled_summary(rows, **tolerances)
     lines = [
         f"## Grasp data A = {a} vs B = {b}",
         "Relative differences at the compared ramp step, over ramps solved in both data sets.",
