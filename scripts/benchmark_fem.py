@@ -21,7 +21,9 @@ from omegaconf import DictConfig, OmegaConf
 
 def factorizations(solver) -> int | None:
     """Matrix factorizations of all the solver's problems so far (None where the linear solver has none)."""
-    if solver.linear_solver not in ("direct", "dense") or not hasattr(solver.system, "factorizations"):
+    from defgraspnets.fem.solver import FACTORIZING_SOLVERS
+
+    if solver.linear_solver not in FACTORIZING_SOLVERS or not hasattr(solver.system, "factorizations"):
         return None
     return int(solver.system.factorizations.sum())
 

@@ -90,3 +90,30 @@ def thick_shell_octant_mesh(inner_radius: float, outer_radius: float, size: floa
         occ.intersect(shell, [(3, box)])
 
     return gmsh_tet_mesh(build, f"{size}", "shell_octant")
+
+
+def symmetric_pattern_matrices(pattern, batch: int, definite, rng) -> tuple[np.ndarray, np.ndarray]:
+    """Random symmetric matrices with a BlockPattern's sparsity, as (B, n, n) dense matrices and their
+    (B * nnz, 3, 3) BSR block values; ``definite[b]``: problem b positive definite (diagonally dominant)
+    or indefinite (eigenvalues of both signs)."""
+    n = 3 * pattern.rows_per_problem
+    dense = np.zeros((batch, n, n))
+    for b in range(batch):
+        for r, c in zip(pattern.rows, pattern.cols):
+            if r <= c:
+                block = rng.normal(size=(3, 3))
+                dense[b, 3 * r : 3 * r + 3, 3 * c : 3 * c + 3] = block
+                dense[b, 3 * c : 3 * c + 3, 3 * r : 3 * r + 3] = block.T
+        dense[b] = 0.5 * (dense[b] + dense[b].T)
+        shift = np.abs(dense[b]).sum(axis=1).max() + 1.0
+        dense[b] += np.eye(n) * (shift if definite[b] else 0.1)
+        eigenvalues = np.linalg.eigvalsh(dense[b])
+        assert (eigenvalues.min() > 0) if definite[b] else (eigenvalues.min() < 0 < eigenvalues.max())
+    values = np.stack(
+        [
+            dense[b][3 * r : 3 * r + 3, 3 * c : 3 * c + 3]
+            for b in range(batch)
+            for r, c in zip(pattern.rows, pattern.cols)
+        ]
+    )
+    return dense, values

@@ -4,7 +4,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fem_helpers import box_pad
+from fem_helpers import box_pad, symmetric_pattern_matrices
 
 from defgraspnets import fem
 
@@ -81,7 +81,7 @@ def test_batched_solves_equal_single_solves():
 
 
 @pytest.mark.parametrize("model", fem.MATERIAL_MODELS)
-@pytest.mark.parametrize("linear_solver", ["direct", "dense", "dense-batched"])
+@pytest.mark.parametrize("linear_solver", ["direct", "dense", "dense-batched", "banded"])
 def test_exact_linear_solvers_make_a_problem_independent_of_its_batch(linear_solver, model, monkeypatch):
     """With a factorization per problem, a problem solved in a batch gives bit for bit what it gives alone:
     nothing of one problem (sparse fill-reducing ordering, pivots, tolerances) depends on another, so a
@@ -298,50 +298,37 @@ if __name__ == "__main__":
     write_cpu_reference()
 
 
-def test_dense_solver_matches_numpy_with_cholesky_lu_fallback_and_factor_reuse():
-    """solve_dense: SPD problems by Cholesky, an indefinite one by LU, zero right-hand sides skipped, and a
+@pytest.mark.parametrize(
+    "method, factor, fallback", [("dense", "cholesky", "lu"), ("banded", "banded", "banded")]
+)
+def test_factorizing_solvers_match_numpy_with_lu_fallback_and_factor_reuse(method, factor, fallback):
+    """solve_dense and solve_banded: SPD problems by Cholesky (dense or block-tridiagonal with the travel
+    rows as border), an indefinite one by LU (dense, or block LU), zero right-hand sides skipped, and a
     second right-hand side on the same matrix solved with the kept factors."""
     import warp as wp
 
     from defgraspnets.fem.system import BatchedSystem, BlockPattern
 
-    mesh = fem.TetMesh.box(size=(L, L, L), divisions=(2, 2, 2))
-    pattern = BlockPattern.build(mesh, num_dofs=1)
+    mesh = fem.TetMesh.box(size=(L, L, L), divisions=(2, 2, 4))
+    pattern = BlockPattern.build(mesh, num_dofs=2)
     B, n = 3, 3 * pattern.rows_per_problem
     system = BatchedSystem(pattern, B, "cpu")
     rng = np.random.default_rng(0)
-    dense = np.zeros((B, n, n))
-    for b in range(B):
-        for r, c in zip(pattern.rows, pattern.cols):
-            if r <= c:
-                block = rng.normal(size=(3, 3))
-                dense[b, 3 * r : 3 * r + 3, 3 * c : 3 * c + 3] = block
-                dense[b, 3 * c : 3 * c + 3, 3 * r : 3 * r + 3] = block.T
-        dense[b] = 0.5 * (dense[b] + dense[b].T)
-        shift = np.abs(dense[b]).sum(axis=1).max() + 1.0
-        # problems 0, 1 positive definite; problem 2 indefinite (eigenvalues of both signs)
-        dense[b] += np.eye(n) * (shift if b < 2 else 0.1)
-    assert np.linalg.eigvalsh(dense[2]).min() < 0 < np.linalg.eigvalsh(dense[2]).max()
-    values = np.stack(
-        [
-            dense[b][3 * r : 3 * r + 3, 3 * c : 3 * c + 3]
-            for b in range(B)
-            for r, c in zip(pattern.rows, pattern.cols)
-        ]
-    )
+    # problems 0, 1 positive definite; problem 2 indefinite (eigenvalues of both signs)
+    dense, values = symmetric_pattern_matrices(pattern, B, [True, True, False], rng)
     system.values.assign(wp.array(values, dtype=wp.mat33d, device="cpu"))
     for _ in range(2):
         rhs = rng.normal(size=(B, n))
         rhs[1] = 0.0  # a converged problem: skipped, increment zero
         system.rhs.assign(rhs.reshape(-1, 3))
-        iterations, residual = system.solve_dense()
+        iterations, residual = getattr(system, f"solve_{method}")()
         assert iterations == 1 and residual < 1e-10
         x = system.increment.numpy().reshape(B, n)
         for b in (0, 2):
             np.testing.assert_allclose(x[b], np.linalg.solve(dense[b], rhs[b]), rtol=1e-8, atol=1e-12)
         np.testing.assert_array_equal(x[1], 0.0)
         assert sorted(system._dense_factors) == [0, 2]  # factors kept for the next right-hand side
-        assert system._dense_factors[0][0] == "cholesky" and system._dense_factors[2][0] == "lu"
+        assert system._dense_factors[0][0] == factor and system._dense_factors[2][0] == fallback
     np.testing.assert_array_equal(system.factorizations, [1, 0, 1])  # the second solve reused them
     system.zero()
     assert not system._dense_factors

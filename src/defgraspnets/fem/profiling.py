@@ -79,3 +79,59 @@ class PhaseTimer:
         out["other"] = {"seconds": round(self.wall - sum(self.seconds.values()), 4), "calls": 0}
         out["wall_seconds"] = round(self.wall, 4)
         return out
+
+
+def time_linear_solves(
+    solver, methods=("dense", "banded"), counts=(1, 16), repeats: int = 3, seed: int = 0
+) -> dict:
+    """Seconds to factor and solve the Newton systems of a solver's current state with each factorizing
+    linear solver of :class:`~defgraspnets.fem.system.BatchedSystem` (``"dense"``, ``"banded"``,
+    ``"direct"``), for the first ``count`` problems of its batch at once.
+
+    The Hessians are the solver's own, assembled at its current state (contacts, friction, gas and
+    constraints included); the right-hand sides are random. Each timed call starts without stored
+    factors and is synchronized (Warp and PyTorch). Returns {"methods": {method: [{"problems", "seconds"
+    (best of ``repeats``), "seconds_all", "residual"}, ...]}, "max_relative_difference": largest
+    |x_method - x_first| / |x_first| over the problems, "unknowns", "banded_flops_ratio"}."""
+    import numpy as np
+
+    B, sysm = solver.batch_size, solver.system
+    active = solver._active_array(np.ones(B, dtype=bool))
+    solver._assemble(active)
+    rng = np.random.default_rng(seed)
+    rhs = rng.normal(size=(B, 3 * solver.rows_per_problem)) * solver._free.numpy().reshape(1, -1)
+    timer = PhaseTimer(solver)
+    out = {
+        "methods": {},
+        "unknowns": int(rhs.shape[1]),
+        "banded_flops_ratio": sysm.banded_layout().flops_ratio(),
+    }
+    solutions = {}
+    for method in methods:
+        solve = getattr(sysm, f"solve_{method}")
+        rows = []
+        for count in counts:
+            count = min(int(count), B)
+            b = rhs.copy()
+            b[count:] = 0.0
+            seconds, residual = [], 0.0
+            for _ in range(repeats):
+                sysm.forget_factors()
+                sysm.rhs.assign(b.reshape(-1, 3))
+                timer._sync()
+                start = time.perf_counter()
+                _, residual = solve()
+                timer._sync()
+                seconds.append(time.perf_counter() - start)
+            rows.append(
+                {"problems": count, "seconds": min(seconds), "seconds_all": seconds, "residual": residual}
+            )
+            solutions[method] = sysm.increment.numpy().reshape(B, -1)[:count].copy()
+        out["methods"][method] = rows
+    sysm.forget_factors()
+    first = solutions[methods[0]]
+    out["max_relative_difference"] = max(
+        float(np.max(np.linalg.norm(x - first[: len(x)], axis=1) / np.linalg.norm(first[: len(x)], axis=1)))
+        for x in solutions.values()
+    )
+    return out

@@ -53,7 +53,9 @@ __all__ = ["SolverOptions", "QuasiStaticSolver"]
 log = logging.getLogger(__name__)
 
 
-LINEAR_SOLVERS = ("auto", "cg", "amg", "direct", "dense")
+LINEAR_SOLVERS = ("auto", "cg", "amg", "direct", "dense", "banded")
+# the linear solvers that factor each problem's Hessian (exact; factors can be kept for chord Newton)
+FACTORIZING_SOLVERS = ("direct", "dense", "banded")
 # Levenberg-Marquardt damping of a rejected exact-Hessian step, in units of E h on the vertex diagonal:
 # it starts at LM_START, x10 per rejection up to LM_MAX, /3 per accepted full step, dropped below LM_MIN
 LM_START, LM_MAX, LM_MIN = 1e-3, 0.1, 1e-6
@@ -94,8 +96,10 @@ class SolverOptions:
         linear_solver: "cg" (batched block-Jacobi CG in Warp, on the solver's device), "amg" (CG with a
             smoothed-aggregation multigrid preconditioner, pyamg, on the host), "direct" (SuperLU on the
             host), "dense" (batched dense Cholesky on the solver's device through PyTorch/cuSOLVER, exact;
-            memory 3 x (3R)^2 x 8 bytes per problem in flight) or "auto" (dense up to 900 unknowns per
-            problem on the CPU and 12000 on CUDA; above that amg on the CPU, cg on CUDA).
+            memory 3 x (3R)^2 x 8 bytes per problem in flight), "banded" (batched block-tridiagonal
+            Cholesky of the breadth-first level ordering on the solver's device, exact; a fraction of
+            the dense solver's flops and memory, see ``block_tridiagonal.py``) or "auto" (dense up to 900
+            unknowns per problem on the CPU and 12000 on CUDA; above that amg on the CPU, cg on CUDA).
         cg_rtol, cg_max_iterations: tightest Krylov tolerance (relative to the right-hand side) and cap; the
             tolerance of each Newton step follows the Eisenstat-Walker forcing term (inexact Newton).
         max_step_fraction: largest vertex or travel motion per Newton iteration, as a fraction of the mesh
@@ -153,7 +157,7 @@ class SolverOptions:
             converges. The damping shrinks after every accepted full step, not only those that lower the
             residual: a body sliding at the friction limit keeps its residual while its energy falls, and a
             fixed damping would make it crawl instead of being flagged ESCAPED.
-        max_factor_reuse: chord (modified) Newton for the factorizing linear solvers ("direct", "dense"):
+        max_factor_reuse: chord (modified) Newton for the factorizing linear solvers (FACTORIZING_SOLVERS):
             a problem's factorization serves up to this many further Newton steps (also across its load
             increments) before it is factored anew; 0: every step factors its own Hessian (plain Newton);
             None (default): 4 on the CPU, 0 on CUDA (``MAX_FACTOR_REUSE_DEFAULT``: measured on an H100 it
@@ -442,7 +446,7 @@ class QuasiStaticSolver:
         # factorization and the Levenberg-Marquardt damping it was made with
         reuse = self.options.max_factor_reuse
         self._max_factor_reuse = int(MAX_FACTOR_REUSE_DEFAULT[dev.is_cuda] if reuse is None else reuse)
-        self._reuse_factors = self._max_factor_reuse > 0 and self.linear_solver in ("direct", "dense")
+        self._reuse_factors = self._max_factor_reuse > 0 and self.linear_solver in FACTORIZING_SOLVERS
         self.system.keep_factors = self._reuse_factors
         if self._reuse_factors and self.linear_solver == "dense" and dev.is_cuda:
             import torch
@@ -1677,6 +1681,8 @@ class QuasiStaticSolver:
             return sysm.solve_amg(self._near_nullspace, rtol, o.cg_max_iterations)
         if self.linear_solver == "dense":
             return sysm.solve_dense(refactor)
+        if self.linear_solver == "banded":
+            return sysm.solve_banded(refactor)
         return sysm.solve_direct(refactor)
 
     def _line_search(self, working: np.ndarray, active, max_step: float) -> tuple[np.ndarray, np.ndarray]:

@@ -21,6 +21,7 @@ import warp as wp
 import warp.optim.linear as wpl
 import warp.sparse as wps
 
+from .block_tridiagonal import BlockTridiagonalFactor, BlockTridiagonalLayout
 from .mesh import TetMesh
 
 f64 = wp.float64
@@ -164,8 +165,11 @@ class BatchedSystem:
         )
         self._amg: dict[int, list] = {}  # problem -> [multigrid hierarchy, CG iterations when built]
         self._dense_index = None  # flat index of every block entry in one problem's dense matrix
-        # factorizations of the direct and dense solvers, per problem: SuperLU objects, and Cholesky factors L
-        # or LU fallbacks (LU, pivots); see ``keep_factors``
+        self._banded_layout = None  # BlockTridiagonalLayout of the pattern
+        self._banded_scatter = None  # its (source, target) indices as tensors on the device
+        # factorizations of the direct, dense and banded solvers, per problem: SuperLU objects, and
+        # ("cholesky", L), ("banded", BlockTridiagonalFactor, position in it) or LU fallbacks
+        # ("lu", LU, pivots); see ``keep_factors``
         self._direct_factors: dict[int, object] = {}
         self._dense_factors: dict[int, tuple] = {}
         #: keep each problem's factorization across matrix changes (``zero``), to be reused by later Newton
@@ -296,6 +300,31 @@ class BatchedSystem:
         self._set_increment(x)
         return 1, float(np.sqrt(residual2))
 
+    def _torch_system(self):
+        """(device, values (B, nnz * 9), rhs (B, n), increment (B, n)): PyTorch views of the system's arrays,
+        after Warp's assembly has finished (Warp and PyTorch may run on different streams)."""
+        import torch
+
+        B, nnz = self.batch_size, self.pattern.nnz
+        n = 3 * self.pattern.rows_per_problem
+        dev = torch.device(wp.device_to_torch(self.device))
+        wp.synchronize_device(self.device)
+        values = wp.to_torch(self.values)[: B * nnz].reshape(B, nnz * 9)
+        return dev, values, wp.to_torch(self.rhs).reshape(B, n), wp.to_torch(self.increment).reshape(B, n)
+
+    def _dense_matrices(self, values, index):
+        """(len(index), n, n) dense Hessians of the problems ``index`` (a LongTensor)."""
+        import torch
+
+        n = 3 * self.pattern.rows_per_problem
+        if self._dense_index is None:
+            r = self.pattern.rows.astype(np.int64)[:, None, None] * 3 + np.arange(3)[None, :, None]
+            c = self.pattern.cols.astype(np.int64)[:, None, None] * 3 + np.arange(3)[None, None, :]
+            self._dense_index = torch.as_tensor((r * n + c).ravel(), device=values.device)
+        A = torch.zeros(len(index), n * n, dtype=torch.float64, device=values.device)
+        A[:, self._dense_index] = values[index]
+        return A.view(len(index), n, n)
+
     def solve_dense(
         self, refactor: np.ndarray | None = None, memory_fraction: float = 0.5
     ) -> tuple[int, float]:
@@ -313,17 +342,8 @@ class BatchedSystem:
         factored chunks)."""
         import torch
 
-        B, rpp, nnz = self.batch_size, self.pattern.rows_per_problem, self.pattern.nnz
-        n = 3 * rpp
-        dev = torch.device(wp.device_to_torch(self.device))
-        if self._dense_index is None:
-            r = self.pattern.rows.astype(np.int64)[:, None, None] * 3 + np.arange(3)[None, :, None]
-            c = self.pattern.cols.astype(np.int64)[:, None, None] * 3 + np.arange(3)[None, None, :]
-            self._dense_index = torch.as_tensor((r * n + c).ravel(), device=dev)
-        wp.synchronize_device(self.device)  # Warp's assembly and PyTorch may run on different streams
-        values = wp.to_torch(self.values)[: B * nnz].reshape(B, nnz * 9)
-        rhs = wp.to_torch(self.rhs).reshape(B, n)
-        increment = wp.to_torch(self.increment).reshape(B, n)
+        n = 3 * self.pattern.rows_per_problem
+        dev, values, rhs, increment = self._torch_system()
         increment.zero_()
         todo = torch.nonzero(rhs.abs().amax(dim=1) > 0).flatten().tolist()
         fresh = self._to_factor(todo, self._dense_factors, refactor)
@@ -339,9 +359,7 @@ class BatchedSystem:
         worst = 0.0
         for ids in [fresh[i : i + chunk] for i in range(0, len(fresh), chunk)]:
             index = torch.as_tensor(ids, device=dev)
-            A = torch.zeros(len(ids), n * n, dtype=torch.float64, device=dev)
-            A[:, self._dense_index] = values[index]
-            A = A.view(len(ids), n, n)
+            A = self._dense_matrices(values, index)
             if len(ids) <= DENSE_LOOP_MAX_PROBLEMS:
                 # a few problems: one factorization each (cuSOLVER's batched potrf has a large fixed cost)
                 factors = [torch.linalg.cholesky_ex(A[k]) for k in range(len(ids))]
@@ -372,12 +390,96 @@ class BatchedSystem:
             torch.cuda.synchronize(dev)
         return 1, worst
 
+    def banded_layout(self) -> BlockTridiagonalLayout:
+        """The block-tridiagonal layout of this system's pattern (built on first use)."""
+        if self._banded_layout is None:
+            p = self.pattern
+            self._banded_layout = BlockTridiagonalLayout.build(p.rows, p.cols, p.num_vertices, p.num_dofs)
+        return self._banded_layout
+
+    def solve_banded(self, refactor: np.ndarray | None = None) -> tuple[int, float]:
+        """Batched block-tridiagonal Cholesky of each problem's Hessian on the system's device, exact to
+        round-off (:mod:`defgraspnets.fem.block_tridiagonal`): the vertices in breadth-first levels, the
+        travel rows eliminated through their Schur complement.
+
+        All problems to factor go in one batch (a factor holds sum_i s_i (s_i + s_{i-1}) + n_v n_t + n_t^2
+        float64 per problem: 17 MB for the 960-vertex box, against 66 MB dense). A problem whose matrix
+        is not positive definite is factored by block LU (partial pivoting inside the blocks), and by
+        dense LU with partial pivoting if a pivot block is singular. ``refactor``, skipped problems and
+        kept factors as in :meth:`solve_dense`. Returns (1, largest relative residual of the freshly
+        factored problems)."""
+        import torch
+
+        layout = self.banded_layout()
+        dev, values, rhs, increment = self._torch_system()
+        increment.zero_()
+        todo = torch.nonzero(rhs.abs().amax(dim=1) > 0).flatten().tolist()
+        fresh = self._to_factor(todo, self._dense_factors, refactor)
+        if not todo:
+            return 1, 0.0
+        worst = 0.0
+        if fresh:
+            if self._banded_scatter is None:
+                self._banded_scatter = tuple(
+                    torch.as_tensor(a, device=dev) for a in (layout.source, layout.target)
+                )
+            source, target = self._banded_scatter
+
+            def factor(ids, lu):
+                """Factor problems ``ids``; returns those whose factorization broke down."""
+                index = torch.as_tensor(ids, device=dev)
+                packed = torch.zeros(len(ids), layout.size, dtype=torch.float64, device=dev)
+                packed[:, target] = values.index_select(0, index)[:, source]
+                made = BlockTridiagonalFactor(layout, packed, lu=lu)
+                failed = made.failed.tolist()
+                for k, p in enumerate(ids):
+                    self._dense_factors[p] = ("banded", made, k)
+                return [p for k, p in enumerate(ids) if failed[k]]
+
+            # CUDA: one batch; CPU: one problem at a time (batched BLAS calls round differently for other
+            # batch sizes, and a problem's answer must not depend on its batch; LAPACK loops anyway)
+            batches = [fresh] if dev.type == "cuda" else [[p] for p in fresh]
+            # not positive definite (exact Hessian off a stable equilibrium): block LU with partial pivoting
+            # inside the blocks, and dense LU where a pivot block is singular
+            indefinite = [p for ids in batches for p in factor(ids, lu=False)]
+            batches = [indefinite] if dev.type == "cuda" else [[p] for p in indefinite]
+            singular = [p for ids in batches if ids for p in factor(ids, lu=True)]
+            if singular:
+                A = self._dense_matrices(values, torch.as_tensor(singular, device=dev))
+                for k, p in enumerate(singular):
+                    self._dense_factors[p] = ("lu", *torch.linalg.lu_factor(A[k]))
+                del A
+        increment[torch.as_tensor(todo, device=dev)] = self._dense_substitute(todo, rhs)
+        if fresh:
+            worst = self._relative_residual(fresh)
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
+        return 1, worst
+
+    def _relative_residual(self, problems: list[int]) -> float:
+        """max over ``problems`` of |H increment - rhs| / |rhs| (one batched sparse product)."""
+        import torch
+
+        if self.device.is_cuda:
+            torch.cuda.synchronize(self.device.ordinal)  # the increment was written by PyTorch
+        product = wp.zeros_like(self.increment)
+        wps.bsr_mv(self.matrix, self.increment, product)
+        wp.synchronize_device(self.device)
+        B, n = self.batch_size, 3 * self.pattern.rows_per_problem
+        index = torch.as_tensor(problems, device=wp.device_to_torch(self.device))
+        b = wp.to_torch(self.rhs).reshape(B, n).index_select(0, index)
+        r = wp.to_torch(product).reshape(B, n).index_select(0, index) - b
+        norm = torch.linalg.vector_norm(b, dim=1).clamp_min(torch.finfo(torch.float64).tiny)
+        return float((torch.linalg.vector_norm(r, dim=1) / norm).max())
+
     def _dense_substitute(self, ids: list[int], rhs):
-        """(len(ids), n) solutions of the listed problems' right-hand sides with their stored dense factors:
-        two triangular solves (trsm) per Cholesky factor, not cholesky_solve (its batched potrs costs ~36 ms
-        for any batch of two or more 2883-unknown problems on an H100, the triangular solves 0.9-7 ms), or
-        an LU solve. On CUDA the Cholesky factors are stacked and solved as one batch; on the CPU one by one
-        (no copies of the factors; LAPACK solves a batch one matrix at a time anyway)."""
+        """(len(ids), n) solutions of the listed problems' right-hand sides with their stored factors.
+
+        Dense Cholesky: two triangular solves (trsm) per factor, not cholesky_solve (its batched potrs
+        costs ~36 ms for any batch of two or more 2883-unknown problems on an H100, the triangular solves
+        0.9-7 ms); on CUDA the factors are stacked and solved as one batch, on the CPU one by one (no
+        copies of the factors; LAPACK solves a batch one matrix at a time anyway). Block-tridiagonal
+        factors: one batched substitution per factorization batch. LU: one solve each."""
         import torch
 
         b = rhs[torch.as_tensor(ids, device=rhs.device)].unsqueeze(2)
@@ -394,9 +496,19 @@ class BatchedSystem:
                 L = factors[k][1]
                 y = torch.linalg.solve_triangular(L, b[k], upper=False)
                 x[k] = torch.linalg.solve_triangular(L.T, y, upper=True)
+        groups: dict[int, tuple] = {}  # block-tridiagonal factorization batch -> (factor, [k], [position])
         for k, f in enumerate(factors):
             if f[0] == "lu":
                 x[k] = torch.linalg.lu_solve(f[1], f[2], b[k])
+            elif f[0] == "banded":
+                group = groups.setdefault(id(f[1]), (f[1], [], []))
+                group[1].append(k)
+                group[2].append(f[2])
+        for factor, ks, positions in groups.values():
+            k = torch.as_tensor(ks, device=rhs.device)
+            everything = positions == list(range(len(factor.failed)))
+            rows = None if everything else torch.as_tensor(positions, device=rhs.device)
+            x[k] = factor.solve(b[k].squeeze(2), rows).unsqueeze(2)
         return x.squeeze(2)
 
     def solve_amg(self, near_nullspace: np.ndarray, rtol: float, maxiter: int) -> tuple[int, float]:

@@ -1,0 +1,164 @@
+"""The banded linear solver: level structures, block-tridiagonal Cholesky, and whole FEM solves with it."""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import torch
+
+from defgraspnets import fem
+from defgraspnets.fem.block_tridiagonal import BlockTridiagonalFactor, BlockTridiagonalLayout, level_blocks
+from defgraspnets.fem.system import BlockPattern
+
+
+def _vertex_graph(mesh: fem.TetMesh) -> sp.csr_matrix:
+    t = mesh.tets
+    r = np.concatenate([t[:, a] for a in range(4) for _ in range(4)])
+    c = np.concatenate([t[:, b] for _ in range(4) for b in range(4)])
+    n = mesh.num_vertices
+    return sp.csr_matrix((np.ones(len(r)), (r, c)), shape=(n, n))
+
+
+def _two_boxes() -> fem.TetMesh:
+    a = fem.TetMesh.box(size=(0.02, 0.02, 0.03), divisions=(2, 2, 3))
+    b = fem.TetMesh.box(size=(0.02, 0.02, 0.02), divisions=(2, 2, 2), origin=(0.05, 0.0, 0.0))
+    points = np.concatenate([a.points, b.points])
+    return fem.TetMesh(points, np.concatenate([a.tets, b.tets + a.num_vertices]))
+
+
+def _membrane() -> fem.TetMesh:
+    from defgraspnets.tactile.membrane import build_membrane
+
+    return build_membrane(cap_divisions=8, layers=2).mesh
+
+
+@pytest.mark.parametrize(
+    "make, max_flops_ratio",
+    [
+        (lambda: fem.TetMesh.box(size=(0.05, 0.04, 0.06), divisions=(9, 7, 11)), 0.15),  # the FEM benchmark's
+        (_two_boxes, 1.0),
+        (_membrane, 0.05),  # the tactile sensor's coarse membrane (915 vertices)
+    ],
+)
+def test_level_blocks_join_each_mesh_edge_within_one_block_or_two_neighbours(make, max_flops_ratio):
+    """Every vertex is ordered once, every edge joins a block to itself or a neighbour (K is block
+    tridiagonal), no block is wider than the widest level, and the factorization costs a fraction of the
+    dense one (the measured gain that makes the solver worth having)."""
+    mesh = make()
+    graph = _vertex_graph(mesh)
+    order, sizes = level_blocks(graph)
+    assert sorted(order.tolist()) == list(range(mesh.num_vertices)) and sizes.sum() == mesh.num_vertices
+    block = np.repeat(np.arange(len(sizes)), sizes)[np.argsort(order)]
+    rows, cols = graph.nonzero()
+    assert np.abs(block[rows] - block[cols]).max() <= 1
+    assert len(sizes) > 2
+    pattern = BlockPattern.build(mesh, 1)
+    layout = BlockTridiagonalLayout.build(pattern.rows, pattern.cols, mesh.num_vertices, 1)
+    assert layout.flops_ratio() < max_flops_ratio
+
+
+def test_disconnected_components_are_ordered_one_after_the_other():
+    mesh = _two_boxes()
+    order, sizes = level_blocks(_vertex_graph(mesh))
+    first = 3 * 3 * 4  # vertices of the first box
+    bounds = np.cumsum(sizes)
+    assert first in bounds  # a block boundary between the components
+    assert set(order[:first].tolist()) == set(range(first))
+
+
+@pytest.mark.parametrize("lu", [False, True])
+def test_factor_of_a_block_tridiagonal_matrix_with_border_matches_numpy(lu):
+    """The layout scatters a BSR matrix into blocks; the factor solves it (several right-hand sides, a
+    subset of its problems) as numpy does. Block Cholesky flags the problem that is not positive definite;
+    block LU solves it too."""
+    from fem_helpers import symmetric_pattern_matrices
+
+    mesh = fem.TetMesh.box(size=(0.02, 0.02, 0.04), divisions=(2, 2, 5))
+    pattern = BlockPattern.build(mesh, num_dofs=2)
+    layout = BlockTridiagonalLayout.build(pattern.rows, pattern.cols, pattern.num_vertices, pattern.num_dofs)
+    assert layout.num_blocks > 2 and layout.border == 6
+    rng = np.random.default_rng(1)
+    definite = [True, False, True]
+    dense, values = symmetric_pattern_matrices(pattern, 3, definite, rng)
+    flat = torch.as_tensor(values.reshape(3, -1))
+    packed = torch.zeros(3, layout.size, dtype=torch.float64)
+    packed[:, torch.as_tensor(layout.target)] = flat[:, torch.as_tensor(layout.source)]
+    factor = BlockTridiagonalFactor(layout, packed, lu=lu)
+    assert factor.failed.tolist() == [False, not lu, False]
+    n = dense.shape[1]
+    problems = [2, 1, 0] if lu else [2, 0]
+    rhs = rng.normal(size=(len(problems), n))
+    x = factor.solve(torch.as_tensor(rhs), torch.as_tensor(problems)).numpy()
+    for k, b in enumerate(problems):
+        reference = np.linalg.solve(dense[b], rhs[k])
+        assert np.linalg.norm(x[k] - reference) < 1e-10 * np.linalg.norm(reference)
+
+
+def test_banded_and_dense_solvers_reach_the_same_squeeze_equilibria():
+    """Two Franka-like pads squeeze a box (force-controlled travel row: the border) with friction, for
+    both material models: the banded solver's equilibria equal the dense solver's to round-off."""
+    from fem_helpers import box_pad
+
+    mesh = fem.TetMesh.box(size=(0.02, 0.015, 0.025), divisions=(4, 3, 5), origin=(-0.01, -0.0075, -0.0125))
+    v, f = box_pad((0.012, 0.008, 0.012))
+    results = {}
+    for model in fem.MATERIAL_MODELS:
+        for linear_solver in ("dense", "banded"):
+            bodies = [
+                fem.RigidBody(
+                    name,
+                    fem.TriangleMesh(v, f),
+                    control=fem.Control.force((0, -s, 0), dof="grip"),
+                    friction=0.7,
+                )
+                for name, s in (("left", 1), ("right", -1))
+            ]
+            solver = fem.QuasiStaticSolver(
+                mesh,
+                bodies,
+                fem.Material(1e5, 0.3, 1000.0, model=model),
+                batch_size=2,
+                device="cpu",
+                options=fem.SolverOptions(linear_solver=linear_solver),
+            )
+            for name, s in (("left", 1), ("right", -1)):
+                T = np.tile(np.eye(4), (2, 1, 1))
+                T[:, 1, 3] = s * (0.0075 + 0.004)
+                T[1, 0, 3] = 0.002  # off-centre grasp: the object turns
+                solver.set_body_pose(name, T)
+            eq = solver.ramp(3, targets={"grip": np.array([1.0, 2.0])})[-1]
+            eq.require_converged()
+            results[model, linear_solver] = eq
+        a, b = results[model, "dense"], results[model, "banded"]
+        np.testing.assert_allclose(b.displacement, a.displacement, atol=1e-8 * np.abs(a.displacement).max())
+        np.testing.assert_allclose(b.travel["grip"], a.travel["grip"], rtol=1e-8)
+
+
+def test_sealed_membrane_poke_with_the_banded_solver_equals_the_direct_one():
+    """The tactile sensor's closed gas cavity adds a rank-one stiffness (a second solve with the same
+    factors, Sherman-Morrison) and its clamped rim fixes rows: a pole poke gives the same wrench and gas
+    pressure with the banded solver as with SuperLU."""
+    from defgraspnets.tactile.indenters import SphereIndenter
+    from defgraspnets.tactile.membrane import ATMOSPHERIC_PRESSURE, PVState, build_membrane
+    from defgraspnets.tactile.sensor import MembraneSimulator, membrane_solver_options
+
+    sensor = build_membrane(cap_divisions=8, layers=2)
+    gas = PVState(ATMOSPHERIC_PRESSURE + 1500.0, sensor.cavity_volume + sensor.dimensions.housing_volume)
+    readings = {}
+    for linear_solver in ("direct", "banded"):
+        sim = MembraneSimulator(
+            sensor,
+            SphereIndenter(radius=0.01),
+            gas,
+            closed=True,
+            batch_size=1,
+            intrinsics=None,
+            options=membrane_solver_options("cpu", linear_solver=linear_solver),
+            device="cpu",
+        )
+        assert sim.solver.linear_solver == linear_solver
+        readings[linear_solver] = sim.indent([sim.pole_indentation(0.006)], render=False)[0]
+        assert readings[linear_solver].converged
+    a, b = readings["direct"], readings["banded"]
+    assert a.contact_force[2] > 0.1  # N: a real poke
+    np.testing.assert_allclose(b.contact_force, a.contact_force, rtol=0, atol=1e-6 * a.contact_force[2])
+    assert b.gauge_pressure == pytest.approx(a.gauge_pressure, rel=1e-8)
