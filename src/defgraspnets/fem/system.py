@@ -300,9 +300,10 @@ class BatchedSystem:
         self._set_increment(x)
         return 1, float(np.sqrt(residual2))
 
-    def _torch_system(self):
-        """(device, values (B, nnz * 9), rhs (B, n), increment (B, n)): PyTorch views of the system's arrays,
-        after Warp's assembly has finished (Warp and PyTorch may run on different streams)."""
+    def _torch_solve_start(self, refactor):
+        """Common start of the PyTorch factorizing solves, after Warp's assembly has finished (Warp and
+        PyTorch may run on different streams): (device, values (B, nnz * 9), rhs (B, n), increment (B, n),
+        zeroed, problems with a nonzero right-hand side, those of them to factor)."""
         import torch
 
         B, nnz = self.batch_size, self.pattern.nnz
@@ -310,7 +311,11 @@ class BatchedSystem:
         dev = torch.device(wp.device_to_torch(self.device))
         wp.synchronize_device(self.device)
         values = wp.to_torch(self.values)[: B * nnz].reshape(B, nnz * 9)
-        return dev, values, wp.to_torch(self.rhs).reshape(B, n), wp.to_torch(self.increment).reshape(B, n)
+        rhs = wp.to_torch(self.rhs).reshape(B, n)
+        increment = wp.to_torch(self.increment).reshape(B, n)
+        increment.zero_()
+        todo = torch.nonzero(rhs.abs().amax(dim=1) > 0).flatten().tolist()
+        return dev, values, rhs, increment, todo, self._to_factor(todo, self._dense_factors, refactor)
 
     def _dense_matrices(self, values, index):
         """(len(index), n, n) dense Hessians of the problems ``index`` (a LongTensor)."""
@@ -343,10 +348,7 @@ class BatchedSystem:
         import torch
 
         n = 3 * self.pattern.rows_per_problem
-        dev, values, rhs, increment = self._torch_system()
-        increment.zero_()
-        todo = torch.nonzero(rhs.abs().amax(dim=1) > 0).flatten().tolist()
-        fresh = self._to_factor(todo, self._dense_factors, refactor)
+        dev, values, rhs, increment, todo, fresh = self._torch_solve_start(refactor)
         if not todo:
             return 1, 0.0
         bytes_per_problem = 3 * n * n * 8  # matrix, factor, workspace
@@ -411,10 +413,7 @@ class BatchedSystem:
         import torch
 
         layout = self.banded_layout()
-        dev, values, rhs, increment = self._torch_system()
-        increment.zero_()
-        todo = torch.nonzero(rhs.abs().amax(dim=1) > 0).flatten().tolist()
-        fresh = self._to_factor(todo, self._dense_factors, refactor)
+        dev, values, rhs, increment, todo, fresh = self._torch_solve_start(refactor)
         if not todo:
             return 1, 0.0
         worst = 0.0
