@@ -37,7 +37,7 @@ def test_benchmark_tactile_times_one_poke_path(tmp_path):
     assert record["extrapolated_grid_minutes"] == pytest.approx(
         record["seconds_per_state"] * 10_000 / 60, rel=1e-3
     )
-    assert record["solver"] == {"linear_solver": "direct", "rtol": 2e-5, "contact_smoothing": 0.01}
+    assert record["solver"] == {"linear_solver": "banded", "rtol": 2e-5, "contact_smoothing": 0.01}
     assert not list(tmp_path.rglob("*.h5"))  # the timed shard went to a temporary directory
 
 
