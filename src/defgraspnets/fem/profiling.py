@@ -16,6 +16,7 @@ from __future__ import annotations
 import time
 from collections import defaultdict
 
+import numpy as np
 import warp as wp
 
 #: phase name -> solver method: everything of a Newton iteration but its bookkeeping
@@ -30,6 +31,15 @@ PHASES = {
 }
 
 
+def synchronize(device) -> None:
+    """Wait for Warp's and, on CUDA, PyTorch's queued work on ``device``."""
+    wp.synchronize_device(device)
+    if device.is_cuda:
+        import torch
+
+        torch.cuda.synchronize(wp.device_to_torch(device))
+
+
 class PhaseTimer:
     """Context manager timing the :data:`PHASES` of one solver (module docstring)."""
 
@@ -41,11 +51,7 @@ class PhaseTimer:
         self._start = 0.0
 
     def _sync(self):
-        wp.synchronize_device(self.solver.device)
-        if self.solver.device.is_cuda:
-            import torch
-
-            torch.cuda.synchronize(wp.device_to_torch(self.solver.device))
+        synchronize(self.solver.device)
 
     def _wrap(self, phase: str, method):
         def timed(*args, **kwargs):
@@ -93,14 +99,11 @@ def time_linear_solves(
     factors and is synchronized (Warp and PyTorch). Returns {"methods": {method: [{"problems", "seconds"
     (best of ``repeats``), "seconds_all", "residual"}, ...]}, "max_relative_difference": largest
     |x_method - x_first| / |x_first| over the problems, "unknowns", "banded_flops_ratio"}."""
-    import numpy as np
-
     B, sysm = solver.batch_size, solver.system
     active = solver._active_array(np.ones(B, dtype=bool))
     solver._assemble(active)
     rng = np.random.default_rng(seed)
     rhs = rng.normal(size=(B, 3 * solver.rows_per_problem)) * solver._free.numpy().reshape(1, -1)
-    timer = PhaseTimer(solver)
     out = {
         "methods": {},
         "unknowns": int(rhs.shape[1]),
@@ -118,10 +121,10 @@ def time_linear_solves(
             for _ in range(repeats):
                 sysm.forget_factors()
                 sysm.rhs.assign(b.reshape(-1, 3))
-                timer._sync()
+                synchronize(solver.device)
                 start = time.perf_counter()
                 _, residual = solve()
-                timer._sync()
+                synchronize(solver.device)
                 seconds.append(time.perf_counter() - start)
             rows.append(
                 {"problems": count, "seconds": min(seconds), "seconds_all": seconds, "residual": residual}
