@@ -28,7 +28,7 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 
-__all__ = ["instantiate_kernels", "compile_cuda_kernels"]
+__all__ = ["instantiate_kernels", "compile_cuda_kernels", "kernel_cache_root"]
 
 
 def instantiate_kernels() -> None:
@@ -70,11 +70,21 @@ def _instantiate_tactile() -> None:
     sim.indent([sim.pole_indentation(0.002)])
 
 
+def kernel_cache_root(cache_dir) -> Path:
+    """The folder where Warp, given ``WARP_CACHE_PATH=cache_dir``, looks for cached modules:
+    ``cache_dir/<warp version>`` (``warp._src.build.init_kernel_cache``), so that a cache built by one
+    Warp version is never loaded by another."""
+    import warp as wp
+
+    return Path(cache_dir).resolve() / wp.config.version
+
+
 def compile_cuda_kernels(cache_dir, archs=(90,), formats=("cubin",), modules=None) -> list[Path]:
     """Build every Warp module that holds kernels (or those named in ``modules``) for the CUDA
-    architectures ``archs`` (e.g. 90: H100, H200) as CUBIN and/or PTX into ``cache_dir``, laid out as
-    Warp's kernel cache (point ``WARP_CACHE_PATH`` at it on the GPU machine). Generic kernels are built
-    for the overloads that exist (run :func:`instantiate_kernels` first). Returns the artifacts' paths."""
+    architectures ``archs`` (e.g. 90: H100, H200) as CUBIN and/or PTX under ``cache_dir``, laid out as
+    Warp's kernel cache for ``WARP_CACHE_PATH=cache_dir`` (:func:`kernel_cache_root`: Warp looks in a
+    subfolder named after its version). Generic kernels are built for the overloads that exist (run
+    :func:`instantiate_kernels` first). Returns the artifacts' paths."""
     import warp as wp
     from warp._src.context import user_modules
 
@@ -89,7 +99,7 @@ def compile_cuda_kernels(cache_dir, archs=(90,), formats=("cubin",), modules=Non
         if missing:
             raise KeyError(f"no Warp module named {missing} has been imported")
         selected = [(name, user_modules[name]) for name in modules]
-    cache = Path(cache_dir).resolve()
+    cache = kernel_cache_root(cache_dir)
     cache.mkdir(parents=True, exist_ok=True)
     default = wp.config.kernel_cache_dir
     wp.config.kernel_cache_dir = str(cache)  # compile_aot_module writes to <cache>/<module identifier>/
