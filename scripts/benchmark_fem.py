@@ -127,6 +127,13 @@ def main(cfg: DictConfig) -> None:
                     int(eq.newton_iterations.max()),
                 ],
                 "newton_iterations_per_problem": newton.tolist(),
+                # the lockstep batch runs as long as its slowest grasp: how far the rest are from it
+                "newton_per_grasp": {
+                    "median": float(np.median(newton)),
+                    "p90": float(np.percentile(newton, 90)),
+                    "max": int(newton.max()),
+                    "slowest_grasps": np.argsort(-newton, kind="stable")[:5].tolist(),
+                },
                 "status_per_problem": eq.status.tolist(),
                 "krylov_iterations_total": int(np.sum(krylov)),
                 # matrix factorizations of all problems (direct and dense solvers; None for Krylov solvers)
@@ -168,6 +175,7 @@ def main(cfg: DictConfig) -> None:
                     "steps",
                     "seconds",
                     "newton_iterations_total",
+                    "newton_per_grasp",
                     "krylov_iterations_total",
                     "converged",
                     "factorizations",

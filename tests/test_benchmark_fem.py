@@ -45,6 +45,9 @@ def test_benchmark_fem_writes_per_step_and_per_grasp_records(tmp_path):
     per_grasp = np.array(record["newton_iterations_per_problem"])
     assert per_grasp.shape == (2,) and np.all(per_grasp > 0)
     assert record["newton_iterations_total"] == per_grasp.max()
+    spread = record["newton_per_grasp"]
+    assert spread["max"] == per_grasp.max() and spread["median"] == np.median(per_grasp)
+    assert spread["slowest_grasps"][0] == int(np.argmax(per_grasp)) and len(spread["slowest_grasps"]) == 2
     assert len(record["newton_iterations_step_max"]) == 3
     assert sum(record["status_counts"].values()) == 2 == len(record["status_per_problem"])
     assert record["converged"] == 2  # a stiff cube squeezed by two pads: both ramps reach 15 N
