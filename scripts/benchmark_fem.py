@@ -136,7 +136,7 @@ def main(cfg: DictConfig) -> None:
                 },
                 "status_per_problem": eq.status.tolist(),
                 "krylov_iterations_total": int(np.sum(krylov)),
-                # matrix factorizations of all problems (direct and dense solvers; None for Krylov solvers)
+                # matrix factorizations of all problems (FACTORIZING_SOLVERS; None for Krylov solvers)
                 "factorizations": factorizations(solver),
                 "converged": int(eq.converged.sum()),
                 "status_counts": {str(k): int(v) for k, v in zip(*np.unique(eq.status, return_counts=True))},

@@ -167,6 +167,7 @@ class BatchedSystem:
         self._dense_index = None  # flat index of every block entry in one problem's dense matrix
         self._banded_layout = None  # BlockTridiagonalLayout of the pattern
         self._banded_scatter = None  # its (source, target) indices as tensors on the device
+        self._product = None  # H increment of the banded solver's residual check (allocated on first use)
         # factorizations of the direct, dense and banded solvers, per problem: SuperLU objects, and
         # ("cholesky", L), ("banded", BlockTridiagonalFactor, position in it) or LU fallbacks
         # ("lu", LU, pivots); see ``keep_factors``
@@ -461,8 +462,10 @@ class BatchedSystem:
 
         if self.device.is_cuda:
             torch.cuda.synchronize(self.device.ordinal)  # the increment was written by PyTorch
-        product = wp.zeros_like(self.increment)
-        wps.bsr_mv(self.matrix, self.increment, product)
+        if self._product is None:
+            self._product = wp.zeros_like(self.increment)
+        product = self._product
+        wps.bsr_mv(self.matrix, self.increment, product, beta=0.0)
         wp.synchronize_device(self.device)
         B, n = self.batch_size, 3 * self.pattern.rows_per_problem
         index = torch.as_tensor(problems, device=wp.device_to_torch(self.device))
