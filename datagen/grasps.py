@@ -43,6 +43,7 @@ def main(cfg: DictConfig) -> None:
         out_dir=cfg.out_dir,
         youngs_modulus=list(cfg.youngs_modulus),
         num_grasps=cfg.num_grasps,
+        rotations_per_axis=cfg.rotations_per_axis,
         steps=cfg.steps,
         max_force=cfg.max_force,
         friction=cfg.friction,

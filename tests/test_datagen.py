@@ -128,6 +128,33 @@ def test_failed_ramps_are_not_marked_solved(tmp_path, monkeypatch):
     assert sh.status.tolist() == [[0, 1]] and sh.solved().tolist() == [[0, 0]]
 
 
+def test_rotations_per_axis_sets_how_many_grasps_share_contact_points(tmp_path, monkeypatch):
+    """``rotations_per_axis=1`` puts every grasp of a shard on its own axis (new contact points each); the
+    thesis's 4 turn the approach about shared axes. The FEM is not what is tested here: skipped."""
+    from defgraspnets.data.splits import grasp_axis_ids
+
+    def no_fem(mesh, grasps, material, friction, max_force, steps, *args, **kwargs):
+        G, N = len(grasps), mesh.num_vertices
+        return {
+            "force": np.tile(np.linspace(max_force / steps, max_force, steps), (G, 1)),
+            "von_mises": np.zeros((G, steps, N), dtype=np.float32),
+            "displacement": np.zeros((G, steps, N, 3), dtype=np.float32),
+            "finger_travel": np.zeros((G, steps, 2)),
+            "status": np.zeros(G, dtype=np.int8),
+        }
+
+    monkeypatch.setattr(datagen, "_squeeze_modulus", no_fem)
+    axes = {}
+    for k in (1, 4):
+        (r,) = _generate(tmp_path / f"rot{k}", youngs_modulus=(1e6,), num_grasps=8, rotations_per_axis=k)
+        sh = GraspShard(r.path)
+        assert len(sh.grasp_pose) == 8
+        ids = grasp_axis_ids(sh.grasp_pose, sh.closing_direction)
+        axes[k] = np.bincount(ids)
+    assert axes[1].tolist() == [1] * 8
+    assert len(axes[4]) <= 4 and axes[4].max() >= 2
+
+
 def test_really_failing_solve_is_recorded(tmp_path):
     # a far too large force for a very soft box: the ramp must not be stored as an answer
     (r,) = _generate(tmp_path, youngs_modulus=(1e3,), num_grasps=1, steps=1, max_force=50.0)

@@ -525,6 +525,7 @@ def generate_object_shards(
     num_grasps: int = 100,
     steps: int = 50,
     max_force: float = 15.0,
+    rotations_per_axis: int = 4,
     friction: float = 0.7,
     poisson_ratio: float = 0.3,
     density: float = 1000.0,
@@ -561,6 +562,8 @@ def generate_object_shards(
             no element can invert, so soft moduli converge at 15 N) or "corotated" (the thesis's FleX
             model; soft objects invert and fail there, e.g. E = 1e4 Pa past 7 N on a 50 mm box).
         num_grasps: G antipodal grasps sampled on the object (``seed``), split over ``shard_count`` shards.
+        rotations_per_axis: approach directions about each sampled grasp axis (thesis: 4; 1 gives G
+            distinct axes, i.e. G pairs of contact points instead of about G / 4).
         steps: S ramp steps; ``max_force``: final total normal grasp force F_g [N].
         friction: Coulomb coefficient of the pads (and of the sampler's friction-cone test).
         shard_index: write only this shard (multirun / array jobs); None writes all ``shard_count``.
@@ -621,7 +624,12 @@ def generate_object_shards(
     )  # fmt: skip
     fingers = gripper_fingers(gripper)
     all_grasps = sample_antipodal_grasps(
-        mesh, num_grasps=num_grasps, gripper=gripper, friction_coefficient=friction, seed=seed
+        mesh,
+        num_grasps=num_grasps,
+        gripper=gripper,
+        friction_coefficient=friction,
+        rotations_per_axis=rotations_per_axis,
+        seed=seed,
     )
     if len(all_grasps) < shard_count:
         raise ValueError(
