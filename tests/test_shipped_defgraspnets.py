@@ -63,16 +63,14 @@ def test_shipped_checkpoint_predicts_unseen_fem_grasps(fem_and_prediction):
 OBJECTS18 = Path(__file__).resolve().parents[1] / "checkpoints" / "defgraspnets_objects18.ckpt"
 
 
-def test_multi_object_checkpoint_ranks_unseen_grasps_of_a_training_object():
-    """checkpoints/defgraspnets_objects18.ckpt (17 primitives + lemon, rigid-removed displacement target, see
-    defgraspnets_objects18.yaml) on 12 fresh grasps (seed 7; its data used seed 0) of one of its training
-    shapes, the 60 x 40 x 20 mm cuboid, at a training modulus. The mesh is another fTetWild meshing of that
-    cuboid (262 vertices; the training mesh has 268), so the model meets new vertices too. The grasp rankings
-    by mean stress and mean deformation follow the FEM's (measured tau 0.79 / 0.76), the mean stresses are off
-    by 23 % on average (at most 45 %) and the deformations within a factor of 3 (measured
-    0.52-0.81x). The checkpoint of session 20 measured tau 0.85 / 0.73, 23 % (at most 35 %), 0.42-0.61x."""
-    from scipy.stats import kendalltau
+AXES32 = OBJECTS18.parent / "defgraspnets_axes32.ckpt"
 
+
+@pytest.fixture(scope="module")
+def fresh_cuboid_squeezes():
+    """12 fresh grasps (seed 7; the checkpoints' data used seeds 0 and 3) of one of the 18 training shapes,
+    the 60 x 40 x 20 mm cuboid, squeezed by the FEM to 15 N at a training modulus, on another fTetWild
+    meshing of that cuboid (262 vertices; the training mesh has 268), so the models meet new vertices too."""
     from defgraspnets.grasp.metrics import rigid_removed_deformation
 
     mesh = fem.TetMesh.load(Path(__file__).parent / "data" / "cuboid_60x40x20.vtu")
@@ -84,8 +82,17 @@ def test_multi_object_checkpoint_ranks_unseen_grasps_of_a_training_object():
     true_deformation = rigid_removed_deformation(mesh.points, mesh.points + last.displacement[ok]).mean(
         axis=1
     )
-    true_stress = last.von_mises[ok].mean(axis=1)
-    predictor = DefGraspNetsPredictor.from_checkpoint(OBJECTS18)
+    return mesh, grasps, E, ok, last.von_mises[ok].mean(axis=1), true_deformation
+
+
+def _check_fresh_grasps(ckpt, squeezes, min_tau_s, min_tau_d, max_mean_error, max_error):
+    """The checkpoint's grasp rankings by mean stress and mean deformation follow the FEM's (Kendall tau above
+    the bounds), its mean stresses are off by at most the given fractions (mean over grasps and each), its
+    mean deformations within a factor of 3, and both grow with the force."""
+    from scipy.stats import kendalltau
+
+    mesh, grasps, E, ok, true_stress, true_deformation = squeezes
+    predictor = DefGraspNetsPredictor.from_checkpoint(ckpt)
     assert predictor.displacement_target == "rigid_removed"
     args = dict(
         fingers=gripper_finger_geometry(),
@@ -96,14 +103,54 @@ def test_multi_object_checkpoint_ranks_unseen_grasps_of_a_training_object():
     half = predictor.predict(mesh, 7.5, E, **args)
     pred_deformation = pred.mean_deformation.numpy()[ok]
     pred_stress = pred.mean_stress.numpy()[ok]
-    assert kendalltau(pred_stress, true_stress)[0] > 0.5
-    assert kendalltau(pred_deformation, true_deformation)[0] > 0.5
+    assert kendalltau(pred_stress, true_stress)[0] > min_tau_s
+    assert kendalltau(pred_deformation, true_deformation)[0] > min_tau_d
     stress_error = np.abs(pred_stress / true_stress - 1)
-    assert stress_error.mean() < 0.3 and np.all(stress_error < 0.5), stress_error
+    assert stress_error.mean() < max_mean_error and np.all(stress_error < max_error), stress_error
     ratio = pred_deformation / true_deformation
     assert np.all((ratio > 1 / 3) & (ratio < 3)), ratio
     assert torch.all(pred.mean_deformation > half.mean_deformation)
     assert torch.all(pred.mean_stress > half.mean_stress)
+
+
+def test_multi_object_checkpoint_ranks_unseen_grasps_of_a_training_object(fresh_cuboid_squeezes):
+    """checkpoints/defgraspnets_objects18.ckpt (17 primitives + lemon, rigid-removed displacement target, see
+    defgraspnets_objects18.yaml) on the fresh cuboid grasps: measured tau 0.79 / 0.76, mean stresses off by
+    23 % on average (at most 45 %), deformations 0.52-0.81x. The checkpoint of session 20 measured tau 0.85 /
+    0.73, 23 % (at most 35 %), 0.42-0.61x. (On 6 shapes this check averages tau 0.22 / 0.21 for it: the cuboid
+    is its lucky case; benchmarks/defgraspnets_long_training_h100.md.)"""
+    _check_fresh_grasps(OBJECTS18, fresh_cuboid_squeezes, 0.5, 0.5, 0.3, 0.5)
+
+
+def test_axes32_checkpoint_ranks_unseen_grasps_of_a_training_object(fresh_cuboid_squeezes):
+    """checkpoints/defgraspnets_axes32.ckpt (the same shapes and network, trained on 32 grasp axes per object)
+    on the fresh cuboid grasps: measured tau 0.70 / 0.48, mean stresses off by 17 % on average (at most 33 %),
+    deformations 0.47-1.07x. On all 18 objects' fresh axes it ranks better than defgraspnets_objects18 (tau
+    0.41 / 0.40 against 0.27 / 0.20, checkpoints/defgraspnets_axes32_eval.md); 12 grasps of one object are a
+    noisy sample of that (tau standard error ~0.2)."""
+    _check_fresh_grasps(AXES32, fresh_cuboid_squeezes, 0.5, 0.3, 0.25, 0.45)
+
+
+def test_axes32_checkpoint_recipe_is_an_experiment_config():
+    """``python train.py experiment=defgraspnets_axes32`` trains what the shipped checkpoint was trained with:
+    every model hyperparameter, the axis hold-out split and targets, batch size and the 20-epoch schedule."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    root = Path(__file__).resolve().parents[1]
+    os.environ.setdefault("PROJECT_ROOT", str(root))
+    with initialize_config_dir(config_dir=str(root / "configs"), version_base="1.3"):
+        cfg = compose("train.yaml", overrides=["experiment=defgraspnets_axes32"])
+    ckpt = torch.load(AXES32, map_location="cpu", weights_only=False)
+    model = OmegaConf.to_container(cfg.model)
+    model.pop("_target_")
+    assert model == dict(ckpt["hyper_parameters"])
+    data = ckpt["datamodule_hyper_parameters"]
+    for key in ("split", "batch_size", "train_steps", "eval_steps", "displacement", "contact_radius", "seed"):
+        assert cfg.data[key] == data[key], key
+    assert cfg.data.holdout == data["holdout"] == "axis"
+    assert cfg.trainer.max_epochs == ckpt["hyper_parameters"]["lr_decay_epochs"] == 20
+    assert "optimizer_states" not in ckpt  # shipped for inference
 
 
 def test_multi_object_checkpoint_ships_the_meshes_of_its_data():
