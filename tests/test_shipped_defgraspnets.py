@@ -131,23 +131,31 @@ def test_axes32_checkpoint_ranks_unseen_grasps_of_a_training_object(fresh_cuboid
     _check_fresh_grasps(AXES32, fresh_cuboid_squeezes, 0.5, 0.3, 0.25, 0.45)
 
 
-def test_axes32_checkpoint_recipe_is_an_experiment_config():
-    """``python train.py experiment=defgraspnets_axes32`` trains what the shipped checkpoint was trained with:
-    every model hyperparameter, the axis hold-out split and targets, batch size and the 20-epoch schedule."""
+def _recipe_and_checkpoint(experiment: str, path: Path):
+    """The train config composed with ``experiment=<experiment>`` and the checkpoint at ``path``, after
+    checking that the config's model hyperparameters and data split/targets/batch equal the checkpoint's."""
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
     root = Path(__file__).resolve().parents[1]
     os.environ.setdefault("PROJECT_ROOT", str(root))
     with initialize_config_dir(config_dir=str(root / "configs"), version_base="1.3"):
-        cfg = compose("train.yaml", overrides=["experiment=defgraspnets_axes32"])
-    ckpt = torch.load(AXES32, map_location="cpu", weights_only=False)
+        cfg = compose("train.yaml", overrides=[f"experiment={experiment}"])
+    ckpt = torch.load(path, map_location="cpu", weights_only=False)
     model = OmegaConf.to_container(cfg.model)
     model.pop("_target_")
     assert model == dict(ckpt["hyper_parameters"])
     data = ckpt["datamodule_hyper_parameters"]
     for key in ("split", "batch_size", "train_steps", "eval_steps", "displacement", "contact_radius", "seed"):
         assert cfg.data[key] == data[key], key
+    return cfg, ckpt
+
+
+def test_axes32_checkpoint_recipe_is_an_experiment_config():
+    """``python train.py experiment=defgraspnets_axes32`` trains what the shipped checkpoint was trained with:
+    every model hyperparameter, the axis hold-out split and targets, batch size and the 20-epoch schedule."""
+    cfg, ckpt = _recipe_and_checkpoint("defgraspnets_axes32", AXES32)
+    data = ckpt["datamodule_hyper_parameters"]
     assert cfg.data.holdout == data["holdout"] == "axis"
     assert cfg.trainer.max_epochs == ckpt["hyper_parameters"]["lr_decay_epochs"] == 20
     assert "optimizer_states" not in ckpt  # shipped for inference
@@ -182,20 +190,8 @@ def test_multi_object_checkpoint_ships_the_meshes_of_its_data():
 def test_multi_object_checkpoint_recipe_is_an_experiment_config():
     """``python train.py experiment=defgraspnets_objects18`` trains what the shipped checkpoint was trained
     with: every model hyperparameter, the data split and targets, batch size and epochs."""
-    from hydra import compose, initialize_config_dir
-    from omegaconf import OmegaConf
-
-    root = Path(__file__).resolve().parents[1]
-    os.environ.setdefault("PROJECT_ROOT", str(root))
-    with initialize_config_dir(config_dir=str(root / "configs"), version_base="1.3"):
-        cfg = compose("train.yaml", overrides=["experiment=defgraspnets_objects18"])
-    ckpt = torch.load(OBJECTS18, map_location="cpu", weights_only=False)
-    model = OmegaConf.to_container(cfg.model)
-    model.pop("_target_")
-    assert model == dict(ckpt["hyper_parameters"])
+    cfg, ckpt = _recipe_and_checkpoint("defgraspnets_objects18", OBJECTS18)
     data = ckpt["datamodule_hyper_parameters"]
-    for key in ("split", "batch_size", "train_steps", "eval_steps", "displacement", "contact_radius", "seed"):
-        assert cfg.data[key] == data[key], key
     # trained before data.holdout existed (single grasps held out): the recipe says so to rebuild its split
     assert cfg.data.holdout == data.get("holdout", "grasp") == "grasp"
     assert cfg.trainer.max_epochs == ckpt["hyper_parameters"]["lr_decay_epochs"] == 40
