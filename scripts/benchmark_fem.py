@@ -43,6 +43,13 @@ def main(cfg: DictConfig) -> None:
     size = np.asarray(cfg.object.size, dtype=float)
     mesh = fem.TetMesh.box(size=size, divisions=tuple(cfg.object.divisions), origin=-size / 2, name="box")
     grasps = sample_antipodal_grasps(mesh, num_grasps=cfg.num_grasps, seed=cfg.seed)
+    if cfg.grasp_indices is not None:
+        chosen = np.asarray(list(cfg.grasp_indices), dtype=int)
+        if chosen.size == 0 or chosen.min() < 0 or chosen.max() >= len(grasps):
+            raise ValueError(
+                f"grasp_indices must pick among the {len(grasps)} sampled grasps, got {list(chosen)}"
+            )
+        grasps = grasps[chosen]
     material = fem.Material(cfg.youngs_modulus, cfg.poisson_ratio, cfg.density, model=cfg.material_model)
     options = squeeze_solver_options(
         linear_solver=cfg.linear_solver,
@@ -55,6 +62,7 @@ def main(cfg: DictConfig) -> None:
                 "contact_smoothing",
                 "relag_friction_on_retry",
                 "max_step_fraction",
+                "banded_min_problems",
             )
         },
     )
@@ -97,6 +105,7 @@ def main(cfg: DictConfig) -> None:
                 "contact_smoothing",
                 "max_factor_reuse",
                 "relag_friction_on_retry",
+                "banded_min_problems",
             )
             if hasattr(options, k)
         },

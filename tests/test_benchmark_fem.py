@@ -76,6 +76,31 @@ def test_phase_timer_counts_one_linear_solve_per_newton_iteration_and_restores_t
     assert summary["wall_seconds"] >= summary["linear_solve"]["seconds"] > 0
 
 
+def test_benchmark_fem_solves_a_chosen_subset_of_the_sampled_grasps_as_in_the_whole_batch(tmp_path):
+    """grasp_indices: the second of two sampled grasps alone takes the Newton iterations it took beside the
+    first (on the CPU a problem's path does not depend on its batch); an index out of range is named."""
+    common = (
+        "object.size=[0.03,0.03,0.03]",
+        "object.divisions=[3,3,3]",
+        "num_grasps=2",
+        "steps=2",
+        "youngs_modulus=1e6",
+        "linear_solver=dense",
+    )
+    records = []
+    for i, extra in enumerate(((), ("grasp_indices=[1]",))):
+        out = tmp_path / f"fem{i}.json"
+        run = _run(tmp_path, *common, *extra, f"out={out}")
+        assert run.returncode == 0, run.stderr[-2000:]
+        records.append(json.loads(out.read_text()))
+    both, alone = records
+    assert both["grasps"] == 2 and alone["grasps"] == 1
+    assert alone["newton_iterations_per_problem"] == both["newton_iterations_per_problem"][1:]
+    assert alone["status_per_problem"] == both["status_per_problem"][1:]
+    run = _run(tmp_path, *common, "grasp_indices=[2]")
+    assert run.returncode != 0 and "grasp_indices" in run.stderr
+
+
 def test_benchmark_fem_names_a_misspelled_key(tmp_path):
     run = _run(tmp_path, "num_grasp=2")
     assert run.returncode != 0

@@ -95,14 +95,15 @@ def test_factor_of_a_block_tridiagonal_matrix_with_border_matches_numpy(lu):
 
 def test_banded_and_dense_solvers_reach_the_same_squeeze_equilibria():
     """Two Franka-like pads squeeze a box (force-controlled travel row: the border) with friction, for
-    both material models: the banded solver's equilibria equal the dense solver's to round-off."""
+    both material models: the banded solver's equilibria equal the dense solver's to round-off, and so do
+    those of the dense_banded solver, which factors both problems banded and a lone one densely."""
     from fem_helpers import box_pad
 
     mesh = fem.TetMesh.box(size=(0.02, 0.015, 0.025), divisions=(4, 3, 5), origin=(-0.01, -0.0075, -0.0125))
     v, f = box_pad((0.012, 0.008, 0.012))
     results = {}
     for model in fem.MATERIAL_MODELS:
-        for linear_solver in ("dense", "banded"):
+        for linear_solver in ("dense", "banded", "dense_banded"):
             bodies = [
                 fem.RigidBody(
                     name,
@@ -118,7 +119,7 @@ def test_banded_and_dense_solvers_reach_the_same_squeeze_equilibria():
                 fem.Material(1e5, 0.3, 1000.0, model=model),
                 batch_size=2,
                 device="cpu",
-                options=fem.SolverOptions(linear_solver=linear_solver),
+                options=fem.SolverOptions(linear_solver=linear_solver, banded_min_problems=2),
             )
             for name, s in (("left", 1), ("right", -1)):
                 T = np.tile(np.eye(4), (2, 1, 1))
@@ -128,9 +129,12 @@ def test_banded_and_dense_solvers_reach_the_same_squeeze_equilibria():
             eq = solver.ramp(3, targets={"grip": np.array([1.0, 2.0])})[-1]
             eq.require_converged()
             results[model, linear_solver] = eq
-        a, b = results[model, "dense"], results[model, "banded"]
-        np.testing.assert_allclose(b.displacement, a.displacement, atol=1e-8 * np.abs(a.displacement).max())
-        np.testing.assert_allclose(b.travel["grip"], a.travel["grip"], rtol=1e-8)
+        a = results[model, "dense"]
+        for b in (results[model, "banded"], results[model, "dense_banded"]):
+            np.testing.assert_allclose(
+                b.displacement, a.displacement, atol=1e-8 * np.abs(a.displacement).max()
+            )
+            np.testing.assert_allclose(b.travel["grip"], a.travel["grip"], rtol=1e-8)
 
 
 def test_sealed_membrane_poke_with_the_banded_solver_equals_the_direct_one():

@@ -334,6 +334,47 @@ def test_factorizing_solvers_match_numpy_with_lu_fallback_and_factor_reuse(metho
     assert not system._dense_factors
 
 
+def test_dense_banded_solver_factors_few_problems_densely_and_many_banded():
+    """solve_dense_banded: below ``banded_from`` problems to factor the dense Cholesky, from it on the
+    banded one; either way the solutions are numpy's, and kept factors of both kinds serve a second
+    right-hand side."""
+    import warp as wp
+
+    from defgraspnets.fem.system import BatchedSystem, BlockPattern
+
+    mesh = fem.TetMesh.box(size=(L, L, L), divisions=(2, 2, 4))
+    pattern = BlockPattern.build(mesh, num_dofs=2)
+    B, n = 3, 3 * pattern.rows_per_problem
+    rng = np.random.default_rng(1)
+    dense, values = symmetric_pattern_matrices(pattern, B, [True, True, True], rng)
+    for banded_from, kind in ((3, "cholesky"), (2, "banded"), (1, "banded")):
+        system = BatchedSystem(pattern, B, "cpu")
+        system.values.assign(wp.array(values, dtype=wp.mat33d, device="cpu"))
+        rhs = rng.normal(size=(B, n))
+        rhs[1] = 0.0  # two problems to factor
+        system.rhs.assign(rhs.reshape(-1, 3))
+        system.solve_dense_banded(banded_from=banded_from)
+        x = system.increment.numpy().reshape(B, n)
+        for b in (0, 2):
+            np.testing.assert_allclose(x[b], np.linalg.solve(dense[b], rhs[b]), rtol=1e-8, atol=1e-12)
+        assert {p: f[0] for p, f in system._dense_factors.items()} == {0: kind, 2: kind}
+        # a second right-hand side with problem 1 too: problems 0 and 2 reuse their factors, 1 is factored
+        # alone, densely below banded_from = 2 and banded at 1
+        rhs = rng.normal(size=(B, n))
+        system.rhs.assign(rhs.reshape(-1, 3))
+        system.solve_dense_banded(banded_from=banded_from)
+        x = system.increment.numpy().reshape(B, n)
+        for b in range(B):
+            np.testing.assert_allclose(x[b], np.linalg.solve(dense[b], rhs[b]), rtol=1e-8, atol=1e-12)
+        assert system._dense_factors[1][0] == ("banded" if banded_from == 1 else "cholesky")
+        np.testing.assert_array_equal(system.factorizations, [1, 1, 1])
+    with pytest.raises(ValueError, match="banded_from"):
+        system.solve_dense_banded(banded_from=0)
+    for bad in (0, 2.5, None):
+        with pytest.raises(ValueError, match="banded_min_problems"):
+            fem.SolverOptions(banded_min_problems=bad)
+
+
 def test_newton_budget_flags_a_problem_instead_of_holding_up_the_batch():
     forces = np.array([1.0, 2.0])
     _, solver = _grasp_problem(2)

@@ -53,9 +53,9 @@ __all__ = ["SolverOptions", "QuasiStaticSolver"]
 log = logging.getLogger(__name__)
 
 
-LINEAR_SOLVERS = ("auto", "cg", "amg", "direct", "dense", "banded")
+LINEAR_SOLVERS = ("auto", "cg", "amg", "direct", "dense", "banded", "dense_banded")
 # the linear solvers that factor each problem's Hessian (exact; factors can be kept for chord Newton)
-FACTORIZING_SOLVERS = ("direct", "dense", "banded")
+FACTORIZING_SOLVERS = ("direct", "dense", "banded", "dense_banded")
 # Levenberg-Marquardt damping of a rejected exact-Hessian step, in units of E h on the vertex diagonal:
 # it starts at LM_START, x10 per rejection up to LM_MAX, /3 per accepted full step, dropped below LM_MIN
 LM_START, LM_MAX, LM_MIN = 1e-3, 0.1, 1e-6
@@ -98,8 +98,12 @@ class SolverOptions:
             host), "dense" (batched dense Cholesky on the solver's device through PyTorch/cuSOLVER, exact;
             memory 3 x (3R)^2 x 8 bytes per problem in flight), "banded" (batched block-tridiagonal
             Cholesky of the breadth-first level ordering on the solver's device, exact; a fraction of
-            the dense solver's flops and memory, see ``block_tridiagonal.py``) or "auto" (dense up to 900
+            the dense solver's flops and memory, see ``block_tridiagonal.py``), "dense_banded" (per linear
+            solve: dense when fewer than ``banded_min_problems`` problems need a new factorization, banded
+            otherwise; :meth:`BatchedSystem.solve_dense_banded`) or "auto" (dense up to 900
             unknowns per problem on the CPU and 12000 on CUDA; above that amg on the CPU, cg on CUDA).
+        banded_min_problems: the "dense_banded" solver factors this many problems or more at once with the
+            banded solver, fewer with the dense one (12: fastest of 4-32 on the FEM benchmark, one H100).
         cg_rtol, cg_max_iterations: tightest Krylov tolerance (relative to the right-hand side) and cap; the
             tolerance of each Newton step follows the Eisenstat-Walker forcing term (inexact Newton).
         max_step_fraction: largest vertex or travel motion per Newton iteration, as a fraction of the mesh
@@ -196,6 +200,7 @@ class SolverOptions:
     max_newton_iterations: int = 40
     max_load_bisections: int = 10
     linear_solver: str = "auto"
+    banded_min_problems: int = 12
     cg_rtol: float = 1e-8
     cg_max_iterations: int = 5000
     max_step_fraction: float = 0.1
@@ -219,6 +224,10 @@ class SolverOptions:
         if self.linear_solver not in LINEAR_SOLVERS:
             raise ValueError(
                 f"linear_solver must be one of {', '.join(LINEAR_SOLVERS)}, got {self.linear_solver!r}"
+            )
+        if not (isinstance(self.banded_min_problems, (int, np.integer)) and self.banded_min_problems >= 1):
+            raise ValueError(
+                f"SolverOptions.banded_min_problems must be an int >= 1, got {self.banded_min_problems!r}"
             )
         if not (np.isfinite(self.stabilization) and self.stabilization >= 0):
             raise ValueError(f"SolverOptions.stabilization must be >= 0, got {self.stabilization!r}")
@@ -448,7 +457,7 @@ class QuasiStaticSolver:
         self._max_factor_reuse = int(MAX_FACTOR_REUSE_DEFAULT[dev.is_cuda] if reuse is None else reuse)
         self._reuse_factors = self._max_factor_reuse > 0 and self.linear_solver in FACTORIZING_SOLVERS
         self.system.keep_factors = self._reuse_factors
-        if self._reuse_factors and self.linear_solver == "dense" and dev.is_cuda:
+        if self._reuse_factors and self.linear_solver in ("dense", "dense_banded") and dev.is_cuda:
             import torch
 
             _, total = torch.cuda.mem_get_info(wp.device_to_torch(dev))
@@ -1683,6 +1692,8 @@ class QuasiStaticSolver:
             return sysm.solve_dense(refactor)
         if self.linear_solver == "banded":
             return sysm.solve_banded(refactor)
+        if self.linear_solver == "dense_banded":
+            return sysm.solve_dense_banded(refactor, o.banded_min_problems)
         return sysm.solve_direct(refactor)
 
     def _line_search(self, working: np.ndarray, active, max_step: float) -> tuple[np.ndarray, np.ndarray]:
