@@ -8,7 +8,13 @@ import torch
 from scipy.stats import kendalltau
 
 from defgraspnets.eval.chamfer import chamfer_distance, nearest_training_object, surface_samples
-from defgraspnets.eval.metrics import FieldMetrics, grouped_kendall_tau, kendall_tau, kendall_tau_interval
+from defgraspnets.eval.metrics import (
+    FieldMetrics,
+    grouped_kendall_tau,
+    grouped_spread_and_relative_error,
+    kendall_tau,
+    kendall_tau_interval,
+)
 from defgraspnets.eval.report import markdown_table, write_json
 from defgraspnets.fem.mesh import TetMesh
 from defgraspnets.models.graph import NODE_FINGER, NODE_SURFACE, GraspGraph
@@ -33,6 +39,23 @@ def test_kendall_tau_edge_cases():
     assert np.isnan(kendall_tau([1, 1, 1], [1, 2, 3])) and np.isnan(kendall_tau([1], [2]))
     with pytest.raises(ValueError, match="equal lengths"):
         kendall_tau([1, 2], [1, 2, 3])
+
+
+def test_grouped_spread_and_relative_error_leave_out_offsets_common_to_a_group():
+    """Spread: the mean within-group standard deviation of the true values; relative error: that of the
+    errors, so a prediction off by a constant per group (whose ranking is exact) has none."""
+    groups = np.array([0, 0, 0, 1, 1, 2])  # group 2 has one row: left out
+    true = np.array([1.0, 2.0, 3.0, 10.0, 14.0, 99.0])
+    offset = np.array([5.0, 5.0, 5.0, -3.0, -3.0, 7.0])
+    spread, error = grouped_spread_and_relative_error(groups[:, None], true + offset, true)
+    assert spread == pytest.approx((np.std([1.0, 2.0, 3.0]) + np.std([10.0, 14.0])) / 2)
+    assert error == pytest.approx(0.0, abs=1e-12)
+    assert grouped_kendall_tau(groups[:, None], true + offset, true)[0] == pytest.approx(1.0)
+    # noise within group 1 only: half of its standard deviation in the group mean
+    noise = np.array([0.0, 0.0, 0.0, 1.0, -1.0, 0.0])
+    _, error = grouped_spread_and_relative_error(groups[:, None], true + offset + noise, true)
+    assert error == pytest.approx(1.0 / 2)
+    assert np.isnan(grouped_spread_and_relative_error(np.arange(3)[:, None], true[:3], true[:3])[0])
 
 
 def test_grouped_kendall_tau_averages_groups():
@@ -155,9 +178,14 @@ def test_report_writers(tmp_path):
             "tau_d_ci_high": float("nan"),
             "mae_stress_kpa": 1.0,
             "mae_deformation_mm": 0.25,
+            "relative_error_mean_stress_kpa": 0.5,
+            "spread_mean_stress_kpa": 2.0,
         }
     ]
     text = markdown_table(rows)
-    assert text.splitlines()[2] == "| unseen_E | total | 3 | 0.50 | n/a | [0.25, 0.75] | n/a | 1 | 0.25 |"
+    assert (
+        text.splitlines()[2]
+        == "| unseen_E | total | 3 | 0.50 | n/a | [0.25, 0.75] | n/a | 1 | 0.25 | 0.5 / 2 |"
+    )
     write_json(tmp_path / "r.json", {"rows": rows})
     assert '"tau_d": null' in (tmp_path / "r.json").read_text()

@@ -27,6 +27,7 @@ __all__ = [
     "FieldMetrics",
     "PerSampleSums",
     "grouped_kendall_tau",
+    "grouped_spread_and_relative_error",
     "kendall_tau",
     "kendall_tau_interval",
     "ranking_agreement_across_moduli",
@@ -56,6 +57,33 @@ def _group_taus(groups, pred, true) -> tuple[np.ndarray, np.ndarray]:
     taus = np.array([kendall_tau(pred[inverse == u], true[inverse == u]) for u in range(len(first))])
     keep = np.isfinite(taus)
     return first[keep], taus[keep]
+
+
+def grouped_spread_and_relative_error(groups, pred, true) -> tuple[float, float]:
+    """What a ranking within groups has to resolve, and how well the prediction resolves it.
+
+    Over the groups (rows of ``groups`` (n, k) with equal keys) of two or more rows: the mean of the
+    standard deviation of ``true`` within each group (the grasp-to-grasp spread that tau ranks), and the mean
+    of the standard deviation of the errors ``pred - true`` within each group (the error that can reorder
+    grasps: an offset common to a whole group changes no rank, so it is left out). Where the second is as
+    large as the first, a group's ranking is mostly noise. Returns (spread, relative error); (NaN, NaN)
+    without a group of two rows."""
+    groups = np.asarray(groups).reshape(len(pred), -1)
+    pred, true = np.asarray(pred, dtype=np.float64), np.asarray(true, dtype=np.float64)
+    _, inverse, counts = np.unique(groups, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    keep = counts[inverse] >= 2
+    if not keep.any():
+        return float("nan"), float("nan")
+
+    def mean_group_std(values):
+        g, v = inverse[keep], values[keep]
+        num = np.bincount(g, minlength=len(counts))
+        mean = np.bincount(g, weights=v, minlength=len(counts)) / np.maximum(num, 1)
+        var = np.bincount(g, weights=(v - mean[g]) ** 2, minlength=len(counts)) / np.maximum(num, 1)
+        return float(np.mean(np.sqrt(var[num >= 2])))
+
+    return mean_group_std(true), mean_group_std(pred - true)
 
 
 def grouped_kendall_tau(groups, pred, true) -> tuple[float, int]:
@@ -291,6 +319,12 @@ class FieldMetrics(PerSampleSums):
         tau_s, groups_s, tau_s_ci = tau_and_interval(a["mean_stress_pred"], a["mean_stress_true"])
         tau_d, _, tau_d_ci = tau_and_interval(a["mean_deform_pred"], a["mean_deform_true"])
         mae_pa = float(a["stress_abs_err"].sum() / n)
+        spread_s, rel_err_s = grouped_spread_and_relative_error(
+            groups, a["mean_stress_pred"], a["mean_stress_true"]
+        )
+        spread_d, rel_err_d = grouped_spread_and_relative_error(
+            groups, a["mean_deform_pred"], a["mean_deform_true"]
+        )
         return {
             "samples": int(len(a["nodes"])),
             "nodes": int(n),  # object nodes over all samples: the weight of the MAEs
@@ -308,6 +342,12 @@ class FieldMetrics(PerSampleSums):
             "mae_displacement_mm": float(a["disp_abs_err"].sum() / n * 1e3),
             "mean_stress_true_kpa": float(np.mean(a["mean_stress_true"]) / 1e3),
             "mean_deformation_true_mm": float(np.mean(a["mean_deform_true"]) * 1e3),
+            # what tau ranks within a group (grasp-to-grasp standard deviation of the mean value) and the
+            # prediction error that can reorder it (its standard deviation within the group), group means
+            "spread_mean_stress_kpa": spread_s / 1e3,
+            "relative_error_mean_stress_kpa": rel_err_s / 1e3,
+            "spread_mean_deformation_mm": spread_d * 1e3,
+            "relative_error_mean_deformation_mm": rel_err_d * 1e3,
         }
 
     def compute(self) -> dict[str, float]:

@@ -23,6 +23,12 @@ LEVEL_COLUMNS = (
     (("tau_d_ci_low", "tau_d_ci_high"), "τ_d 95 % CI", "[{:.2f}, {:.2f}]"),
     ("mae_stress_kpa", "Stress MAE [kPa] ↓", "{:.3g}"),
     ("mae_deformation_mm", "Deformation MAE [mm] ↓", "{:.3g}"),
+    # within a tau group: the error that can reorder grasps, against the grasps' spread of the true value
+    (
+        ("relative_error_mean_stress_kpa", "spread_mean_stress_kpa"),
+        "Mean stress: ranking error / spread [kPa]",
+        "{:.3g} / {:.3g}",
+    ),
 )
 OBJECT_COLUMNS = (
     ("object", "Test object", "{}"),
