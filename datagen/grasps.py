@@ -71,6 +71,7 @@ def main(cfg: DictConfig) -> None:
         experiment_settings=OmegaConf.to_container(cfg.experiment_settings, resolve=True),
         experiment_options=experiment_solver_options(linear_solver=cfg.experiment_linear_solver),
         directions_per_solver=cfg.experiment_directions_per_solver,
+        moduli_per_solver=cfg.moduli_per_solver,
     )
     for r in results:
         if r.skipped:

@@ -114,6 +114,30 @@ def test_resume_simulates_only_missing_grasps(tmp_path, monkeypatch):
     assert np.all(np.isfinite(sh.force))
 
 
+def test_moduli_in_one_batch_give_the_same_data(data_dir, tmp_path, monkeypatch):
+    """moduli_per_solver=2: both moduli's ramps in one batched solve (one problem per grasp and modulus),
+    written per modulus; with the exact (dense) solver every ramp is the one solved alone per modulus."""
+    calls = []
+    real = datagen._squeeze_modulus
+
+    def spy(mesh, grasps, material, *args, **kwargs):
+        calls.append(
+            (len(grasps), [m.youngs_modulus for m in material] if isinstance(material, list) else None)
+        )
+        return real(mesh, grasps, material, *args, **kwargs)
+
+    monkeypatch.setattr(datagen, "_squeeze_modulus", spy)
+    (r,) = _generate(tmp_path, moduli_per_solver=2)
+    assert calls == [(2 * GRASPS, [MODULI[0]] * GRASPS + [MODULI[1]] * GRASPS)]
+    batched, alone = GraspShard(r.path), GraspShard(data_dir / "tinybox__shard0of1.h5")
+    np.testing.assert_array_equal(batched.status, alone.status)
+    for k, g in alone.solved():
+        np.testing.assert_allclose(batched.force[k, g], alone.force[k, g], rtol=1e-12)
+        for s in range(STEPS):
+            for a, b in zip(batched.fields(k, g, s), alone.fields(k, g, s)):
+                np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-9 * np.abs(b).max())
+
+
 def test_failed_ramps_are_not_marked_solved(tmp_path, monkeypatch):
     real = datagen._squeeze_modulus
 
@@ -174,6 +198,7 @@ def test_really_failing_solve_is_recorded(tmp_path):
         (dict(poisson_ratio=0.5), "poisson"),
         (dict(shard_count=2, shard_index=2), "shard_index"),
         (dict(material_model="hookean"), "material_model"),
+        (dict(moduli_per_solver=0), "moduli_per_solver"),
     ],
 )
 def test_bad_input_raises(tmp_path, kw, match):

@@ -230,7 +230,7 @@ def _check_inputs(moduli, num_grasps, steps, max_force, friction, poisson_ratio,
 def _squeeze_modulus(
     mesh: fem.TetMesh,
     grasps: GraspSet,
-    material: fem.Material,
+    material: fem.Material | Sequence[fem.Material],
     friction: float,
     max_force: float,
     steps: int,
@@ -239,7 +239,8 @@ def _squeeze_modulus(
     reject_inverted: bool,
     progress: bool,
 ) -> dict[str, np.ndarray]:
-    """One batched squeeze ramp; per-grasp fields (NaN where failed) and status (first failure code)."""
+    """One batched squeeze ramp (one material, or one per grasp); per-grasp fields (NaN where failed) and
+    status (first failure code)."""
     b, n = len(grasps), mesh.num_vertices
     out = {
         "force": np.full((b, steps), np.nan),
@@ -548,6 +549,7 @@ def generate_object_shards(
     experiment_settings: ExperimentSettings | Mapping | None = None,
     experiment_options: fem.SolverOptions | None = None,
     directions_per_solver: int = 1,
+    moduli_per_solver: int = 1,
 ) -> list[ShardResult]:
     """Simulate the squeeze ramps (and optionally the DefGraspSim experiments) of one object and write its
     grasp shard(s).
@@ -580,6 +582,10 @@ def generate_object_shards(
             friction is ``friction``. None: the defaults (thesis values).
         experiment_options: FEM settings of the experiments (default :func:`experiment_solver_options`).
         directions_per_solver: acceleration directions batched in one solver (:class:`GraspExperiments`).
+        moduli_per_solver: the squeeze ramps of this many moduli run as one batch (one problem per grasp and
+            modulus, each with its own material): fewer, larger launches on a GPU. A problem's ramp does not
+            depend on its batch with an exact linear solver ("direct", "dense"), so the data are the same;
+            the batch runs in lockstep, so its slowest ramp holds the others. 1: one batch per modulus.
 
     Returns:
         One :class:`ShardResult` per shard handled.
@@ -600,6 +606,8 @@ def generate_object_shards(
     settings = resolve_experiment_settings(experiment_settings, friction)
     if not (isinstance(directions_per_solver, (int, np.integer)) and directions_per_solver >= 1):
         raise ValueError(f"directions_per_solver must be an integer >= 1, got {directions_per_solver!r}")
+    if not (isinstance(moduli_per_solver, (int, np.integer)) and moduli_per_solver >= 1):
+        raise ValueError(f"moduli_per_solver must be an integer >= 1, got {moduli_per_solver!r}")
     layout = experiment_layout(names, settings) if names else None
     out_dir = Path(out_dir)
     if isinstance(obj, fem.TetMesh):
@@ -664,35 +672,48 @@ def generate_object_shards(
                 from tqdm.auto import tqdm
 
                 bar = tqdm(total=len(todo), desc=f"{name} shard {i + 1}/{shard_count}", unit="E")
-            for kk, gs in todo.items():
-                material = fem.Material(
+            materials = {
+                kk: fem.Material(
                     float(moduli[kk]), float(poisson_ratio), float(density), model=material_model
                 )
-                res = _squeeze_modulus(
-                    mesh, grasps[np.array(gs)], material, friction, max_force, steps, device,
+                for kk in todo
+            }
+            # the squeeze ramps of moduli_per_solver moduli at a time in one batch; each modulus is written as
+            # soon as its batch is done
+            order = list(todo)
+            for batch in [order[j : j + moduli_per_solver] for j in range(0, len(order), moduli_per_solver)]:
+                per_problem = [materials[kk] for kk in batch for _ in todo[kk]]
+                batch_ramps = _squeeze_modulus(
+                    mesh, grasps[np.concatenate([todo[kk] for kk in batch])],
+                    per_problem if len(batch) > 1 else per_problem[0], friction, max_force, steps, device,
                     solver_options, reject_inverted, progress,
                 )  # fmt: skip
-                entries = None
-                if layout is not None:
-                    entries, _ = run_experiments(
-                        mesh, grasps[np.array(gs)], material, settings, names, device, experiment_options,
-                        gripper, directions_per_solver, progress,
-                    )  # fmt: skip
-                # ramp and experiment results of an entry are written together, then marked done
-                for j, g in enumerate(gs):
-                    writer.write(
-                        kk, g, res["force"][j], res["von_mises"][j], res["displacement"][j],
-                        res["finger_travel"][j], status=int(res["status"][j]),
-                        experiments=None if entries is None else entries[j],
-                    )  # fmt: skip
-                codes = res["status"][res["status"] != STATUS_SOLVED]
-                if codes.size:
-                    _log.warning(
-                        "%s E=%.3g Pa: %d of %d squeeze ramps failed (status %s); stored as failed",
-                        name, moduli[kk], codes.size, len(gs), np.unique(codes).tolist(),
-                    )  # fmt: skip
-                if bar is not None:
-                    bar.update(1)
+                first = 0
+                for kk in batch:
+                    gs = todo[kk]
+                    res = {key: v[first : first + len(gs)] for key, v in batch_ramps.items()}
+                    first += len(gs)
+                    entries = None
+                    if layout is not None:
+                        entries, _ = run_experiments(
+                            mesh, grasps[np.array(gs)], materials[kk], settings, names, device,
+                            experiment_options, gripper, directions_per_solver, progress,
+                        )  # fmt: skip
+                    # ramp and experiment results of an entry are written together, then marked done
+                    for j, g in enumerate(gs):
+                        writer.write(
+                            kk, g, res["force"][j], res["von_mises"][j], res["displacement"][j],
+                            res["finger_travel"][j], status=int(res["status"][j]),
+                            experiments=None if entries is None else entries[j],
+                        )  # fmt: skip
+                    codes = res["status"][res["status"] != STATUS_SOLVED]
+                    if codes.size:
+                        _log.warning(
+                            "%s E=%.3g Pa: %d of %d squeeze ramps failed (status %s); stored as failed",
+                            name, moduli[kk], codes.size, len(gs), np.unique(codes).tolist(),
+                        )  # fmt: skip
+                    if bar is not None:
+                        bar.update(1)
             if bar is not None:
                 bar.close()
             final = writer.finalize()
