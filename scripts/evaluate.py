@@ -77,7 +77,7 @@ def evaluate_checkpoint(ckpt_path: str, cfg: DictConfig, out_dir: Path) -> tuple
         batch_size=dm.hparams.eval_batch_size or 1,
         num_workers=dm.hparams.num_workers,
     )
-    metrics = FieldMetrics()
+    metrics = FieldMetrics(min_relative_spread=cfg.min_relative_spread)
     net = module.net
     with torch.no_grad():
         for batch in tqdm(loader, desc=f"{cfg.part} {dm.split_name}", leave=False):
@@ -92,6 +92,7 @@ def evaluate_checkpoint(ckpt_path: str, cfg: DictConfig, out_dir: Path) -> tuple
         "split": split,
         "displacement_target": module.displacement_target,
         "checkpoint": str(ckpt_path),
+        "min_relative_spread": cfg.min_relative_spread,
         **metrics.compute(),
     }
 

@@ -58,6 +58,42 @@ def test_grouped_spread_and_relative_error_leave_out_offsets_common_to_a_group()
     assert np.isnan(grouped_spread_and_relative_error(np.arange(3)[:, None], true[:3], true[:3])[0])
 
 
+def test_min_relative_spread_leaves_groups_of_alike_grasps_out_of_tau():
+    """Object 0's four grasps differ by ~10 % and are ranked right; object 1's differ by 0.1 % (a sphere's
+    facets) and are ranked backwards. Over all groups tau is 0; with min_relative_spread 0.05 only object 0
+    counts, for stress and deformation alike; a negative fraction is refused."""
+    true0, true1 = np.array([1.0, 1.1, 1.2, 1.3]), np.array([2.0, 2.001, 2.002, 2.003])
+    true = np.concatenate([true0, true1])
+    pred = np.concatenate([true0, true1[::-1]])
+    n = len(true)
+    a = {
+        "sample": np.stack([np.zeros(n), np.zeros(n), np.r_[0:4, 0:4], np.zeros(n)], axis=1),
+        "object_id": np.repeat([0, 1], 4),
+        "youngs_modulus": np.full(n, 1e6),
+        "force": np.full(n, 5.0),
+        "nodes": np.full(n, 10.0),
+        "stress_abs_err": np.zeros(n),
+        "deform_abs_err": np.zeros(n),
+        "disp_abs_err": np.zeros(n),
+        "mean_stress_pred": pred * 1e3,
+        "mean_stress_true": true * 1e3,
+        "max_stress_pred": pred,
+        "max_stress_true": true,
+        "mean_deform_pred": pred * 1e-4,
+        "mean_deform_true": true * 1e-4,
+    }
+    everything = FieldMetrics.summarize(a)
+    assert everything["tau_s"] == pytest.approx(0.0) and everything["tau_groups"] == 2
+    spread = FieldMetrics.summarize(a, min_relative_spread=0.05)
+    assert spread["tau_s"] == pytest.approx(1.0) and spread["tau_d"] == pytest.approx(1.0)
+    assert spread["tau_groups"] == spread["tau_d_groups"] == 1
+    assert spread["mae_stress_pa"] == everything["mae_stress_pa"]  # only tau is restricted
+    sphere = FieldMetrics.summarize({k: v[4:] for k, v in a.items()}, min_relative_spread=0.05)
+    assert np.isnan(sphere["tau_s"]) and sphere["tau_groups"] == 0  # no group left to rank
+    with pytest.raises(ValueError, match="min_relative_spread"):
+        FieldMetrics(min_relative_spread=-0.1)
+
+
 def test_grouped_kendall_tau_averages_groups():
     groups = np.array([0, 0, 0, 1, 1, 1, 2])  # group 2 has a single sample: no tau
     pred = np.array([1, 2, 3, 1, 2, 3, 5.0])

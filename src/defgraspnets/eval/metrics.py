@@ -86,6 +86,19 @@ def grouped_spread_and_relative_error(groups, pred, true) -> tuple[float, float]
     return mean_group_std(true), mean_group_std(pred - true)
 
 
+def _groups_spread_at_least(groups, true, fraction: float) -> np.ndarray:
+    """(n,) rows whose group (equal rows of ``groups``) has a standard deviation of ``true`` of at least
+    ``fraction`` of the magnitude of its mean (every row for fraction 0)."""
+    true = np.asarray(true, dtype=np.float64)
+    if fraction <= 0:
+        return np.ones(len(true), dtype=bool)
+    _, inverse, counts = np.unique(groups, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    mean = np.bincount(inverse, weights=true) / counts
+    std = np.sqrt(np.bincount(inverse, weights=(true - mean[inverse]) ** 2) / counts)
+    return (std >= fraction * np.abs(mean))[inverse]
+
+
 def grouped_kendall_tau(groups, pred, true) -> tuple[float, int]:
     """Mean tau-b over groups (rows of ``groups`` (n, k) with equal keys) with a defined tau.
 
@@ -240,7 +253,18 @@ class FieldMetrics(PerSampleSums):
     Per sample (graph) it keeps: ``sample`` (shard, k, g, s), ``object_id``, ``E`` [Pa], ``force`` [N], mean
     and max stress [Pa] (pred/true), mean deformation [m] (pred/true) and error sums over object nodes.
     Works on any device; summaries are moved to the CPU.
+
+    ``min_relative_spread``: tau (and its interval) averages only the groups whose true values spread by at
+    least this fraction of their mean (standard deviation / mean), separately for stress and deformation.
+    The grasps of a sphere are all alike up to the mesh's facets (a spread of 1-2 %): their order is the
+    discretization's, not the object's. 0 (default): every group.
     """
+
+    def __init__(self, min_relative_spread: float = 0.0):
+        if not (np.isfinite(min_relative_spread) and min_relative_spread >= 0):
+            raise ValueError(f"min_relative_spread must be a fraction >= 0, got {min_relative_spread!r}")
+        self.min_relative_spread = float(min_relative_spread)
+        super().__init__()
 
     _KEYS = (
         "sample",
@@ -301,8 +325,9 @@ class FieldMetrics(PerSampleSums):
         self._append(values)
 
     @staticmethod
-    def summarize(a: dict[str, np.ndarray]) -> dict[str, float]:
-        """Metrics of a dict of per-sample arrays (see :meth:`arrays`)."""
+    def summarize(a: dict[str, np.ndarray], min_relative_spread: float = 0.0) -> dict[str, float]:
+        """Metrics of a dict of per-sample arrays (see :meth:`arrays`); ``min_relative_spread`` as in the
+        class."""
         n = a["nodes"].sum()
         if not len(a["nodes"]):
             return {"samples": 0}
@@ -312,12 +337,15 @@ class FieldMetrics(PerSampleSums):
 
         def tau_and_interval(pred, true) -> tuple[float, int, tuple[float, float]]:
             # group taus once; their mean and its cluster-bootstrap interval over objects
-            first, taus = _group_taus(groups, pred, true)
+            keep = _groups_spread_at_least(groups, true, min_relative_spread)
+            if not keep.any():
+                return float("nan"), 0, (float("nan"), float("nan"))
+            first, taus = _group_taus(groups[keep], pred[keep], true[keep])
             mean = float(np.mean(taus)) if len(taus) else float("nan")
-            return mean, len(taus), _cluster_bootstrap_interval(taus, a["object_id"][first])
+            return mean, len(taus), _cluster_bootstrap_interval(taus, a["object_id"][keep][first])
 
         tau_s, groups_s, tau_s_ci = tau_and_interval(a["mean_stress_pred"], a["mean_stress_true"])
-        tau_d, _, tau_d_ci = tau_and_interval(a["mean_deform_pred"], a["mean_deform_true"])
+        tau_d, groups_d, tau_d_ci = tau_and_interval(a["mean_deform_pred"], a["mean_deform_true"])
         mae_pa = float(a["stress_abs_err"].sum() / n)
         spread_s, rel_err_s = grouped_spread_and_relative_error(
             groups, a["mean_stress_pred"], a["mean_stress_true"]
@@ -329,6 +357,7 @@ class FieldMetrics(PerSampleSums):
             "samples": int(len(a["nodes"])),
             "nodes": int(n),  # object nodes over all samples: the weight of the MAEs
             "tau_groups": int(groups_s),
+            "tau_d_groups": int(groups_d),
             "tau_s": tau_s,
             "tau_d": tau_d,
             # 95 % cluster-bootstrap interval over objects (NaN for a single object)
@@ -352,12 +381,14 @@ class FieldMetrics(PerSampleSums):
 
     def compute(self) -> dict[str, float]:
         """Metrics over everything accumulated (tau averaged over (object, E, step) groups)."""
-        return self.summarize(self.arrays())
+        return self.summarize(self.arrays(), self.min_relative_spread)
 
     def compute_per_object(self) -> dict[int, dict[str, float]]:
         """Metrics of each object id."""
         a = self.arrays()
         return {
-            int(o): self.summarize({k: v[a["object_id"] == o] for k, v in a.items()})
+            int(o): self.summarize(
+                {k: v[a["object_id"] == o] for k, v in a.items()}, self.min_relative_spread
+            )
             for o in np.unique(a["object_id"])
         }
