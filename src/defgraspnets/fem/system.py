@@ -301,16 +301,18 @@ class BatchedSystem:
         self._set_increment(x)
         return 1, float(np.sqrt(residual2))
 
-    def _torch_solve_start(self, refactor):
+    def _torch_solve_start(self, refactor, todo: list[int] | None = None):
         """Common start of the PyTorch factorizing solves, after Warp's assembly has finished (Warp and
         PyTorch may run on different streams): (device, values (B, nnz * 9), rhs (B, n), increment (B, n),
-        zeroed, problems with a nonzero right-hand side, those of them to factor)."""
+        zeroed, problems with a nonzero right-hand side, those of them to factor). ``todo``: those problems,
+        where the caller has already found them (:meth:`_problems_with_rhs`)."""
         import torch
 
         B, nnz = self.batch_size, self.pattern.nnz
         n = 3 * self.pattern.rows_per_problem
         dev = torch.device(wp.device_to_torch(self.device))
-        todo = self._problems_with_rhs()
+        if todo is None:
+            todo = self._problems_with_rhs()
         values = wp.to_torch(self.values)[: B * nnz].reshape(B, nnz * 9)
         rhs = wp.to_torch(self.rhs).reshape(B, n)
         increment = wp.to_torch(self.increment).reshape(B, n)
@@ -340,7 +342,7 @@ class BatchedSystem:
         return A.view(len(index), n, n)
 
     def solve_dense(
-        self, refactor: np.ndarray | None = None, memory_fraction: float = 0.5
+        self, refactor: np.ndarray | None = None, memory_fraction: float = 0.5, todo: list[int] | None = None
     ) -> tuple[int, float]:
         """Batched dense factorization of each problem's Hessian on the system's device (PyTorch: cuSOLVER
         on CUDA, LAPACK on the CPU), exact to round-off.
@@ -352,12 +354,13 @@ class BatchedSystem:
         (converged or inactive) are skipped. The factors are kept until the matrix changes (:meth:`zero`),
         or, with ``keep_factors``, until :meth:`forget_factors` (one (3R)^2 float64 factor per problem
         stays allocated). ``refactor`` as in :meth:`solve_direct`: a problem not marked solves with its
-        stored factor by two triangular solves. Returns (1, largest relative residual of the freshly
-        factored chunks)."""
+        stored factor by two triangular solves. ``todo``: the problems with a nonzero right-hand side where
+        the caller has found them already (:meth:`solve_dense_banded`). Returns (1, largest relative residual
+        of the freshly factored chunks)."""
         import torch
 
         n = 3 * self.pattern.rows_per_problem
-        dev, values, rhs, increment, todo, fresh = self._torch_solve_start(refactor)
+        dev, values, rhs, increment, todo, fresh = self._torch_solve_start(refactor, todo)
         if not todo:
             return 1, 0.0
         bytes_per_problem = 3 * n * n * 8  # matrix, factor, workspace
@@ -417,7 +420,7 @@ class BatchedSystem:
             raise ValueError(f"banded_from must be >= 1, got {banded_from}")
         todo = self._problems_with_rhs()
         count = sum(1 for p in todo if p not in self._dense_factors or (refactor is not None and refactor[p]))
-        return (self.solve_banded if count >= banded_from else self.solve_dense)(refactor)
+        return (self.solve_banded if count >= banded_from else self.solve_dense)(refactor, todo=todo)
 
     def banded_layout(self) -> BlockTridiagonalLayout:
         """The block-tridiagonal layout of this system's pattern (built on first use)."""
@@ -426,7 +429,9 @@ class BatchedSystem:
             self._banded_layout = BlockTridiagonalLayout.build(p.rows, p.cols, p.num_vertices, p.num_dofs)
         return self._banded_layout
 
-    def solve_banded(self, refactor: np.ndarray | None = None) -> tuple[int, float]:
+    def solve_banded(
+        self, refactor: np.ndarray | None = None, todo: list[int] | None = None
+    ) -> tuple[int, float]:
         """Batched block-tridiagonal Cholesky of each problem's Hessian on the system's device, exact to
         round-off (:mod:`defgraspnets.fem.block_tridiagonal`): the vertices in breadth-first levels, the
         travel rows eliminated through their Schur complement.
@@ -435,12 +440,12 @@ class BatchedSystem:
         float64 per problem: 17 MB for the 960-vertex box, against 66 MB dense). A problem whose matrix
         is not positive definite is factored by block LU (partial pivoting inside the blocks), and by
         dense LU with partial pivoting if a pivot block is singular. ``refactor``, skipped problems and
-        kept factors as in :meth:`solve_dense`. Returns (1, largest relative residual of the freshly
-        factored problems)."""
+        kept factors and ``todo`` as in :meth:`solve_dense`. Returns (1, largest relative residual of the
+        freshly factored problems)."""
         import torch
 
         layout = self.banded_layout()
-        dev, values, rhs, increment, todo, fresh = self._torch_solve_start(refactor)
+        dev, values, rhs, increment, todo, fresh = self._torch_solve_start(refactor, todo)
         if not todo:
             return 1, 0.0
         worst = 0.0
