@@ -59,6 +59,19 @@ def _group_taus(groups, pred, true) -> tuple[np.ndarray, np.ndarray]:
     return first[keep], taus[keep]
 
 
+def _group_index(groups) -> tuple[np.ndarray, np.ndarray]:
+    """(n,) group of each row of ``groups`` (n, k) (rows with equal keys share one) and (m,) group sizes."""
+    _, inverse, counts = np.unique(groups, axis=0, return_inverse=True, return_counts=True)
+    return inverse.ravel(), counts
+
+
+def _group_mean_and_std(inverse, counts, values) -> tuple[np.ndarray, np.ndarray]:
+    """(m,) mean and (population) standard deviation of ``values`` (n,) within each group."""
+    mean = np.bincount(inverse, weights=values, minlength=len(counts)) / counts
+    var = np.bincount(inverse, weights=(values - mean[inverse]) ** 2, minlength=len(counts)) / counts
+    return mean, np.sqrt(var)
+
+
 def grouped_spread_and_relative_error(groups, pred, true) -> tuple[float, float]:
     """What a ranking within groups has to resolve, and how well the prediction resolves it.
 
@@ -68,22 +81,14 @@ def grouped_spread_and_relative_error(groups, pred, true) -> tuple[float, float]
     grasps: an offset common to a whole group changes no rank, so it is left out). Where the second is as
     large as the first, a group's ranking is mostly noise. Returns (spread, relative error); (NaN, NaN)
     without a group of two rows."""
-    groups = np.asarray(groups).reshape(len(pred), -1)
     pred, true = np.asarray(pred, dtype=np.float64), np.asarray(true, dtype=np.float64)
-    _, inverse, counts = np.unique(groups, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.ravel()
-    keep = counts[inverse] >= 2
-    if not keep.any():
+    inverse, counts = _group_index(np.asarray(groups).reshape(len(pred), -1))
+    ranked = counts >= 2
+    if not ranked.any():
         return float("nan"), float("nan")
-
-    def mean_group_std(values):
-        g, v = inverse[keep], values[keep]
-        num = np.bincount(g, minlength=len(counts))
-        mean = np.bincount(g, weights=v, minlength=len(counts)) / np.maximum(num, 1)
-        var = np.bincount(g, weights=(v - mean[g]) ** 2, minlength=len(counts)) / np.maximum(num, 1)
-        return float(np.mean(np.sqrt(var[num >= 2])))
-
-    return mean_group_std(true), mean_group_std(pred - true)
+    spread = _group_mean_and_std(inverse, counts, true)[1]
+    error = _group_mean_and_std(inverse, counts, pred - true)[1]
+    return float(np.mean(spread[ranked])), float(np.mean(error[ranked]))
 
 
 def _groups_spread_at_least(groups, true, fraction: float) -> np.ndarray:
@@ -92,10 +97,8 @@ def _groups_spread_at_least(groups, true, fraction: float) -> np.ndarray:
     true = np.asarray(true, dtype=np.float64)
     if fraction <= 0:
         return np.ones(len(true), dtype=bool)
-    _, inverse, counts = np.unique(groups, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.ravel()
-    mean = np.bincount(inverse, weights=true) / counts
-    std = np.sqrt(np.bincount(inverse, weights=(true - mean[inverse]) ** 2) / counts)
+    inverse, counts = _group_index(groups)
+    mean, std = _group_mean_and_std(inverse, counts, true)
     return (std >= fraction * np.abs(mean))[inverse]
 
 
