@@ -63,6 +63,7 @@ def main(cfg: DictConfig) -> None:
                 "relag_friction_on_retry",
                 "max_step_fraction",
                 "banded_min_problems",
+                "line_search_trials",
             )
         },
     )
@@ -106,6 +107,7 @@ def main(cfg: DictConfig) -> None:
                 "max_factor_reuse",
                 "relag_friction_on_retry",
                 "banded_min_problems",
+                "line_search_trials",
             )
             if hasattr(options, k)
         },

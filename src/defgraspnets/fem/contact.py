@@ -368,13 +368,15 @@ def contact_energy_kernel(
     active: wp.array(dtype=wp.int32),
     energy: wp.array(dtype=wp.float64),
 ):
-    """energy[b] += penalty + friction potential of every (problem, surface vertex, body)."""
-    b, si, k = wp.tid()
+    """energy[p] += penalty + friction potential of every (trial state p = t B + b of problem b, surface
+    vertex, body); B = len(active), T = 1: the problems' states."""
+    p, si, k = wp.tid()
+    b = p % active.shape[0]
     if active[b] == 0:
         return
     v = surface[si]
-    x = positions[b * num_vertices + v]
-    t = body_travel(bodies, travel, b, k, num_dofs)
+    x = positions[p * num_vertices + v]
+    t = body_travel(bodies, travel, p, k, num_dofs)
     kn = contact_stiffness(kappa, youngs[b], vertex_area[v], vertex_size[v])
     g, n = body_gap(bodies, b, k, x, t)
     e = penalty_energy(-g, kn, smoothing * vertex_size[v])
@@ -385,7 +387,7 @@ def contact_energy_kernel(
             bodies, b, k, x, ref_positions[b * num_vertices + v], t, lag_normal[c], stick_stretch[c]
         )
         e += friction_energy(s, mu_n, stick_stiffness(mu_n, kn, stick_slip, vertex_size[v]))
-    wp.atomic_add(energy, b, e)
+    wp.atomic_add(energy, p, e)
 
 
 @wp.struct

@@ -239,14 +239,16 @@ def elastic_energy_kernel(
     active: wp.array(dtype=wp.int32),
     energy: wp.array(dtype=wp.float64),
 ):
-    """energy[b] += V_e Psi(F_e) for every (problem b, tet e) (+inf where a Neo-Hookean tet is inverted)."""
-    b, e = wp.tid()
+    """energy[p] += V_e Psi(F_e) for every (trial state p = t B + b of problem b, tet e) (+inf where a
+    Neo-Hookean tet is inverted); B = len(active), T = 1: the problems' states."""
+    p, e = wp.tid()
+    b = p % active.shape[0]
     if active[b] == 0:
         return
-    o = b * num_vertices
+    o = p * num_vertices
     F = tet_deformation_gradient(positions, tets, o, e, rest_inverse[e])
     U, s, V = principal_stretches(F)
-    wp.atomic_add(energy, b, rest_volume[e] * energy_density(model[b], s, mu[b], lam[b]))
+    wp.atomic_add(energy, p, rest_volume[e] * energy_density(model[b], s, mu[b], lam[b]))
 
 
 @wp.kernel

@@ -37,12 +37,14 @@ def trial_state_kernel(
     dq: wp.array(dtype=wp.vec3d),
     step: wp.array(dtype=wp.float64),
     rows_per_problem: int,
+    num_problems: int,
     out: wp.array(dtype=wp.vec3d),
 ):
-    """out = q + step[b] dq."""
-    b, r = wp.tid()
-    i = b * rows_per_problem + r
-    out[i] = q[i] + step[b] * dq[i]
+    """out = q + step[p] dq for trial p = t B + b of problem b (launched over T B trials: T step lengths
+    per problem side by side, trial-major; T = 1: one state per problem)."""
+    p, r = wp.tid()
+    i = (p % num_problems) * rows_per_problem + r
+    out[p * rows_per_problem + r] = q[i] + step[p] * dq[i]
 
 
 @wp.kernel
@@ -139,16 +141,18 @@ def external_work_kernel(
     active: wp.array(dtype=wp.int32),
     energy: wp.array(dtype=wp.float64),
 ):
-    """energy[b] -= f_i . u_i (dead loads) and -= F_d travel_d (force-controlled dofs; 0 otherwise)."""
-    b, r = wp.tid()
+    """energy[p] -= f_i . u_i (dead loads) and -= F_d travel_d (force-controlled dofs; 0 otherwise) for trial
+    state p = t B + b of problem b (B = len(active); T = 1: the problems' states)."""
+    p, r = wp.tid()
+    b = p % active.shape[0]
     if active[b] == 0:
         return
     R = num_vertices + num_dofs
     if r < num_vertices:
-        wp.atomic_add(energy, b, -wp.dot(nodal_force[b * num_vertices + r], q[b * R + r]))
+        wp.atomic_add(energy, p, -wp.dot(nodal_force[b * num_vertices + r], q[p * R + r]))
     else:
         d = r - num_vertices
-        wp.atomic_add(energy, b, -dof_force[b * num_dofs + d] * q[b * R + r][0])
+        wp.atomic_add(energy, p, -dof_force[b * num_dofs + d] * q[p * R + r][0])
 
 
 @wp.kernel
@@ -186,12 +190,14 @@ def stabilization_energy_kernel(
     active: wp.array(dtype=wp.int32),
     energy: wp.array(dtype=wp.float64),
 ):
-    """energy[b] += c_i |u_i - u_ref_i|^2 / 2: the increment stabilization spring of vertex i."""
-    b, v = wp.tid()
+    """energy[p] += c_i |u_i - u_ref_i|^2 / 2: the increment stabilization spring of vertex i, for trial state
+    p = t B + b of problem b (B = len(active))."""
+    p, v = wp.tid()
+    b = p % active.shape[0]
     if active[b] == 0:
         return
-    d = q[b * rows_per_problem + v] - q_ref[b * rows_per_problem + v]
-    wp.atomic_add(energy, b, f64(0.5) * coefficient[b * num_vertices + v] * wp.dot(d, d))
+    d = q[p * rows_per_problem + v] - q_ref[b * rows_per_problem + v]
+    wp.atomic_add(energy, p, f64(0.5) * coefficient[b * num_vertices + v] * wp.dot(d, d))
 
 
 @wp.kernel

@@ -73,6 +73,8 @@ DENSE_KEPT_FACTORS_MAX_MEMORY_FRACTION = 0.5
 # of their Newton budget); on the CPU a factorization costs far more than the triangular solves (see
 # SolverOptions)
 MAX_FACTOR_REUSE_DEFAULT = {False: 4, True: 0}
+# SolverOptions.line_search_trials when None, by device (CPU, CUDA): trial step lengths per energy pass
+LINE_SEARCH_TRIALS_DEFAULT = {False: 1, True: 8}
 
 
 @dataclass(frozen=True)
@@ -189,6 +191,14 @@ class SolverOptions:
             step divided the residual (max norm) by at least 1 / ``factor_reuse_contraction``, in (0, 1).
             0.5 instead of 0.25 cut the factorizations of a soft (20 kPa) grasp less than the extra Newton
             iterations it cost (19 vs 10 factorizations with plain Newton on tests' 4-step grasp).
+        line_search_trials: step lengths whose energies the Armijo line search evaluates in one pass:
+            the current state (slot 0 of the first pass) and the next halvings ``a, a/2, a/4, ...`` side by
+            side in one set of launches and one device synchronization, instead of one halving at a time.
+            The accepted step is the one plain backtracking accepts (the largest of the halvings that passes
+            the Armijo test), so the result does not depend on it. None (default): 8 on CUDA, where a pass
+            over a few trial states costs about what one does (the launches and host synchronizations of
+            a Newton iteration dominate the tail of a lockstep batch), 1 on the CPU, where every trial
+            costs its full energy evaluation (``LINE_SEARCH_TRIALS_DEFAULT``).
         query_distance: search radius [m] of triangle-mesh bodies' signed distance queries.
         record_tet_stress: keep the per-tet Cauchy stress in results (B x M x 9 floats).
     """
@@ -217,6 +227,7 @@ class SolverOptions:
     exact_hessian: bool = True
     max_factor_reuse: int | None = None
     factor_reuse_contraction: float = 0.25
+    line_search_trials: int | None = None
     query_distance: float = 1.0
     record_tet_stress: bool = False
 
@@ -228,6 +239,14 @@ class SolverOptions:
         if not (isinstance(self.banded_min_problems, (int, np.integer)) and self.banded_min_problems >= 1):
             raise ValueError(
                 f"SolverOptions.banded_min_problems must be an int >= 1, got {self.banded_min_problems!r}"
+            )
+        if self.line_search_trials is not None and (
+            isinstance(self.line_search_trials, bool)
+            or not (isinstance(self.line_search_trials, (int, np.integer)) and self.line_search_trials >= 1)
+        ):
+            raise ValueError(
+                "SolverOptions.line_search_trials must be None or an int >= 1, "
+                f"got {self.line_search_trials!r}"
             )
         if not (np.isfinite(self.stabilization) and self.stabilization >= 0):
             raise ValueError(f"SolverOptions.stabilization must be >= 0, got {self.stabilization!r}")
@@ -456,6 +475,10 @@ class QuasiStaticSolver:
         reuse = self.options.max_factor_reuse
         self._max_factor_reuse = int(MAX_FACTOR_REUSE_DEFAULT[dev.is_cuda] if reuse is None else reuse)
         self._reuse_factors = self._max_factor_reuse > 0 and self.linear_solver in FACTORIZING_SOLVERS
+        trials = self.options.line_search_trials
+        self._line_search_trials = T = int(
+            LINE_SEARCH_TRIALS_DEFAULT[dev.is_cuda] if trials is None else trials
+        )
         self.system.keep_factors = self._reuse_factors
         if self._reuse_factors and self.linear_solver in ("dense", "dense_banded") and dev.is_cuda:
             import torch
@@ -568,20 +591,22 @@ class QuasiStaticSolver:
         self._gas_pressure = wp.zeros(B, dtype=wp.float64, device=dev)
         self._gas_k = np.zeros(B)  # -dp/dV at the last assembly
         self._volume_gradient = wp.zeros(B * R, dtype=wp.vec3d, device=dev)
-        self._volume_sum = wp.zeros(B, dtype=wp.float64, device=dev)
+        self._volume_sum = wp.zeros(T * B, dtype=wp.float64, device=dev)  # per trial state (line search)
 
         # ---------------- per-problem state (q packs u and the travels, B * R rows)
         self._q = wp.zeros(B * R, dtype=wp.vec3d, device=dev)
         self._q_ref = wp.zeros_like(self._q)
-        self._q_trial = wp.zeros_like(self._q)
+        # line-search trial states: T per problem, trial-major (state t B + b is trial t of problem b)
+        self._q_trial = wp.zeros(T * B * R, dtype=wp.vec3d, device=dev)
+        self._trial_step = wp.zeros(T * B, dtype=wp.float64, device=dev)
         self._last_increment = wp.zeros_like(self._q)  # q change of each problem's last converged increment
         self._last_change = np.zeros((B, 0))  # and the load change that caused it (predictor)
         self._positions = wp.zeros(B * N, dtype=wp.vec3d, device=dev)
         self._positions_ref = wp.zeros_like(self._positions)
-        self._positions_trial = wp.zeros_like(self._positions)
+        self._positions_trial = wp.zeros(T * B * N, dtype=wp.vec3d, device=dev)
         self._travel = wp.zeros(max(B * D, 1), dtype=wp.float64, device=dev)
         self._travel_ref = wp.zeros_like(self._travel)
-        self._travel_trial = wp.zeros_like(self._travel)
+        self._travel_trial = wp.zeros(max(T * B * D, 1), dtype=wp.float64, device=dev)
         nc = max(B * S * K, 1)
         self._lag_force = wp.zeros(nc, dtype=wp.float64, device=dev)
         self._lag_normal = wp.zeros(nc, dtype=wp.vec3d, device=dev)
@@ -599,8 +624,11 @@ class QuasiStaticSolver:
         self._c_stick = wp.zeros(nc, dtype=wp.int32, device=dev)
         self._nodal_force = wp.zeros(B * N, dtype=wp.vec3d, device=dev)
         self._dof_force = wp.zeros(max(B * D, 1), dtype=wp.float64, device=dev)
-        self._energy = wp.zeros(B, dtype=wp.float64, device=dev)
-        self._scratch = [wp.zeros(B, dtype=wp.float64, device=dev) for _ in range(5)]
+        self._energy = wp.zeros(T * B, dtype=wp.float64, device=dev)  # per trial state
+        self._drift = wp.zeros(B, dtype=wp.float64, device=dev)  # largest vertex move in an increment
+        self._step_stats = wp.zeros((3, B), dtype=wp.float64, device=dev)  # slope, largest vertex / dof step
+        self._newton_scales = wp.zeros((3, B), dtype=wp.float64, device=dev)  # force, load scale; residual
+        self._friction_stats = wp.zeros((3, B), dtype=wp.float64, device=dev)  # lag errors, Aitken dots
         self._step = wp.zeros(B, dtype=wp.float64, device=dev)
         self._stabilization_force = wp.zeros(B, dtype=wp.float64, device=dev)
 
@@ -824,8 +852,6 @@ class QuasiStaticSolver:
         )
         for name in per_problem:
             gather(getattr(self, name), getattr(other, name), 1)
-        for a, b in zip(self._scratch, other._scratch):
-            gather(a, b, 1)
         for name in ("rotation", "translation", "axis", "friction", "ref_rotation", "ref_translation"):
             gather(getattr(self._bodies, name), getattr(other._bodies, name), K)
         # host state
@@ -896,10 +922,11 @@ class QuasiStaticSolver:
             fail("pressure surfaces", ps, po)
 
     # ------------------------------------------------------------------ kernels plumbing
-    def _unpack(self, q, positions, travel):
+    def _unpack(self, q, positions, travel, states: int | None = None):
+        """positions and travel of the first ``states`` packed states of q (default: one per problem)."""
         wp.launch(
             kk.unpack_state_kernel,
-            dim=(self.batch_size, self.rows_per_problem),
+            dim=(self.batch_size if states is None else states, self.rows_per_problem),
             inputs=[q, self._rest, self.mesh.num_vertices, self.num_dofs, positions, travel],
             device=self.device,
         )
@@ -909,12 +936,18 @@ class QuasiStaticSolver:
 
     def _energy_at(self, q, positions, travel, active) -> np.ndarray:
         """Pi per problem at state q (whose unpacked positions/travel are given)."""
+        return self._energies_at(q, positions, travel, active, 1)[0]
+
+    def _energies_at(self, q, positions, travel, active, trials: int) -> np.ndarray:
+        """(trials, B) Pi of ``trials`` packed states per problem, trial-major (state t B + b is trial t of
+        problem b; see ``trial_state_kernel``), in one set of launches; inactive problems' entries are 0."""
         B, N, D = self.batch_size, self.mesh.num_vertices, self.num_dofs
+        TB = trials * B
         e = self._energy
         e.zero_()
         wp.launch(
             ek.elastic_energy_kernel,
-            dim=(B, self.mesh.num_tets),
+            dim=(TB, self.mesh.num_tets),
             inputs=[
                 positions,
                 self._tets,
@@ -932,7 +965,7 @@ class QuasiStaticSolver:
         if self.num_bodies:
             wp.launch(
                 ck.contact_energy_kernel,
-                dim=(B, self.num_surface, self.num_bodies),
+                dim=(TB, self.num_surface, self.num_bodies),
                 inputs=[
                     *self._contact_inputs(positions, travel),
                     active,
@@ -942,33 +975,35 @@ class QuasiStaticSolver:
             )
         wp.launch(
             kk.external_work_kernel,
-            dim=(B, self.rows_per_problem),
+            dim=(TB, self.rows_per_problem),
             inputs=[q, self._nodal_force, self._dof_force, N, D, active, e],
             device=self.device,
         )
         if self.options.stabilization > 0:
             wp.launch(
                 kk.stabilization_energy_kernel,
-                dim=(B, N),
+                dim=(TB, N),
                 inputs=[q, self._q_ref, self._stabilization, N, self.rows_per_problem, active, e],
                 device=self.device,
             )
-        energy = e.numpy().copy()
+        energy = e.numpy()[:TB].reshape(trials, B).copy()
         if self.pressure_surface is not None:
-            dv = self._cavity_volume_change(positions)
+            dv = self._cavity_volume_change(positions, TB).reshape(trials, B)
             work = pk.gas_work(
                 self._gas_law, dv, self.rest_cavity_volume, self.pressure_surface.external_volume
             )
             energy -= np.where(active.numpy() != 0, work, 0.0)
         return energy
 
-    def _cavity_volume_change(self, positions) -> np.ndarray:
-        """(B,) V - V0 [m^3] of the pressurized cavity at the given positions."""
+    def _cavity_volume_change(self, positions, states: int | None = None) -> np.ndarray:
+        """V - V0 [m^3] of the pressurized cavity at the given positions: (B,), or (states,) for that many
+        packed states (line-search trials)."""
+        states = self.batch_size if states is None else states
         dv = self._volume_sum
         dv.zero_()
         wp.launch(
             pk.cavity_volume_change_kernel,
-            dim=(self.batch_size, len(self.pressure_surface.faces)),
+            dim=(states, len(self.pressure_surface.faces)),
             inputs=[
                 positions,
                 self._rest,
@@ -979,7 +1014,7 @@ class QuasiStaticSolver:
             ],
             device=self.device,
         )
-        return dv.numpy().copy()
+        return dv.numpy()[:states].copy()
 
     def _assemble_pressure(self, active, load_scale):
         """Gas pressure at the current state: gradient -p dV/dx, sparse Hessian -p d2V/dx2, and the
@@ -1056,14 +1091,14 @@ class QuasiStaticSolver:
         sysm.rhs.assign(r0)
         return n_lin
 
-    def _assemble(self, active) -> tuple[np.ndarray, np.ndarray]:
-        """Gradient and Hessian at the current state; returns (elastic force scale, load scale)."""
+    def _assemble(self, active) -> None:
+        """Gradient and Hessian at the current state; the elastic force scale and the load scale per problem
+        into rows 0 and 1 of ``self._newton_scales`` (read back with the residual, one synchronization)."""
         B, N, D = self.batch_size, self.mesh.num_vertices, self.num_dofs
         sysm = self.system
         sysm.zero()
-        fscale, lscale = self._scratch[0], self._scratch[1]
-        fscale.zero_()
-        lscale.zero_()
+        self._newton_scales.zero_()
+        fscale, lscale = self._newton_scales[0], self._newton_scales[1]
         wp.launch(
             ek.elastic_gradient_hessian_kernel,
             dim=(B, self.mesh.num_tets),
@@ -1127,7 +1162,6 @@ class QuasiStaticSolver:
         if self.pressure_surface is not None:
             self._assemble_pressure(active, lscale)
         sysm.constrain(self._free, self._diag_shift)
-        return fscale.numpy().copy(), lscale.numpy().copy()
 
     def _contact_inputs(self, positions, travel) -> list:
         """The leading arguments shared by every contact kernel (see ``contact.py``)."""
@@ -1186,9 +1220,9 @@ class QuasiStaticSolver:
         if not self.num_bodies or not np.any(self._friction[mask] > 0):
             return np.zeros(self.batch_size, dtype=bool)
         self._contact_state(self._positions, self._travel)
-        largest, total, capacity = self._scratch[2], self._scratch[3], self._scratch[4]
-        for a in (largest, total, capacity):
-            a.zero_()
+        stats = self._friction_stats
+        stats.zero_()
+        largest, total, capacity = stats[0], stats[1], stats[2]
         wp.launch(
             ck.friction_lag_error_kernel,
             dim=(self.batch_size, self.num_surface * self.num_bodies),
@@ -1207,8 +1241,8 @@ class QuasiStaticSolver:
             ],
             device=self.device,
         )
-        allowed = self.options.friction_rtol * capacity.numpy()
-        return mask & (largest.numpy() > tol) & (total.numpy() > allowed)
+        largest, total, capacity = stats.numpy()
+        return mask & (largest > tol) & (total > self.options.friction_rtol * capacity)
 
     def _relag_friction(self, mask: np.ndarray, accelerate: np.ndarray | None = None):
         """Lagged normal forces and normals <- current ones, for the problems in ``mask``.
@@ -1230,9 +1264,9 @@ class QuasiStaticSolver:
         if acc.any():
             prev = acc & self._relag_has_residual
             if prev.any():
-                num, den = self._scratch[2], self._scratch[3]
-                num.zero_()
-                den.zero_()
+                stats = self._friction_stats
+                stats.zero_()
+                num, den = stats[0], stats[1]
                 wp.launch(
                     ck.friction_lag_residual_dots_kernel,
                     dim=(self.batch_size, slots),
@@ -1247,7 +1281,7 @@ class QuasiStaticSolver:
                     ],
                     device=self.device,
                 )
-                num, den = num.numpy()[prev], den.numpy()[prev]
+                num, den = stats.numpy()[:2, prev]
                 with np.errstate(divide="ignore", invalid="ignore"):
                     w = np.where(den > 0, -self._relag_omega[prev] * num / den, 1.0)
                 self._relag_omega[prev] = np.clip(np.nan_to_num(w, nan=1.0), 0.5, 4.0)
@@ -1539,16 +1573,17 @@ class QuasiStaticSolver:
             stale = np.zeros(B, dtype=bool)
             relag = working & ((iters < o.friction_relag_iterations) | relag_every)
             active = self._active_array(working)
-            fscale, lscale = self._assemble(active)
-            res_arr = self._scratch[2]
-            res_arr.zero_()
+            assembled = working.copy()
+            self._assemble(active)
+            res_arr = self._newton_scales[2]
             wp.launch(
                 kk.newton_rhs_kernel,
                 dim=(B, self.rows_per_problem),
                 inputs=[sysm.gradient, self._free, active, self.rows_per_problem, sysm.rhs, res_arr],
                 device=self.device,
             )
-            res = res_arr.numpy().copy()  # on the CPU numpy() is a view, and scratch[2] is reused below
+            # force scale, load scale and residual in one read (on the CPU numpy() is a view: copied)
+            fscale, lscale, res = self._newton_scales.numpy().copy()
             previous = residual.copy()
             residual[working] = res[working]
             scale = np.maximum(np.maximum(fscale, lscale), dof_targets.max(axis=1, initial=0.0))
@@ -1590,13 +1625,14 @@ class QuasiStaticSolver:
                 break
             iters[working] += 1
             # rhs of problems that are done is zero: rebuild it for the working set only
-            active = self._active_array(working)
-            wp.launch(
-                kk.newton_rhs_kernel,
-                dim=(B, self.rows_per_problem),
-                inputs=[sysm.gradient, self._free, active, self.rows_per_problem, sysm.rhs, res_arr],
-                device=self.device,
-            )
+            if not np.array_equal(working, assembled):
+                active = self._active_array(working)
+                wp.launch(
+                    kk.newton_rhs_kernel,
+                    dim=(B, self.rows_per_problem),
+                    inputs=[sysm.gradient, self._free, active, self.rows_per_problem, sysm.rhs, res_arr],
+                    device=self.device,
+                )
             # inexact Newton (Eisenstat-Walker): solve only as accurately as the nonlinear residual warrants
             tol = o.rtol * scale + atol
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -1621,16 +1657,15 @@ class QuasiStaticSolver:
             if self.pressure_surface is not None:
                 n_lin += self._gas_rank_one(working, linear_rtol)
             lin_iters[working] += n_lin
-            failed, first_trial = self._line_search(working, active, max_step)
+            failed, first_trial, alpha = self._line_search(working, active, max_step)
             # a stale factorization's step that the line search rejects or shortens is no verdict on the
             # Hessian (no damping, no stall): the next step factors anew (a rejected one from the same state)
-            alpha = self._step.numpy()
             stale_step = working & ~fresh & ((failed == 1) | (alpha < first_trial))
             failed[stale_step & (failed == 1)] = 0
             if log.isEnabledFor(logging.DEBUG):
                 log.debug(
                     "  step %.3e line search %s",
-                    self._step.numpy()[int(np.argmax(working))],
+                    alpha[int(np.argmax(working))],
                     failed[working][:4],
                 )
             nonfinite_step = failed == 2
@@ -1663,7 +1698,7 @@ class QuasiStaticSolver:
             ok |= near
             working &= ~(stalled | nonfinite_step)
             # escape: the object moved too far within one increment
-            drift = self._scratch[3]
+            drift = self._drift
             drift.zero_()
             wp.launch(
                 kk.vertex_drift_kernel,
@@ -1696,34 +1731,28 @@ class QuasiStaticSolver:
             return sysm.solve_dense_banded(refactor, o.banded_min_problems)
         return sysm.solve_direct(refactor)
 
-    def _line_search(self, working: np.ndarray, active, max_step: float) -> tuple[np.ndarray, np.ndarray]:
+    def _line_search(self, working: np.ndarray, active, max_step: float):
         """Armijo backtracking on Pi per problem; updates the state. Returns per problem 0 (accepted) or
-        1 (no acceptable step), and the first step length tried (1, or less where the step is shortened to
-        ``max_step``)."""
-        B = self.batch_size
+        1 (no acceptable step), the first step length tried (1, or less where the step is shortened to
+        ``max_step``) and the accepted step length (0 where none).
+
+        The energies of ``SolverOptions.line_search_trials`` = T step lengths per problem are evaluated in
+        one pass (the first pass holds the current state and T - 1 halvings, later ones T halvings each);
+        the accepted step is the largest that passes, as one-at-a-time backtracking accepts."""
+        B, R, T = self.batch_size, self.rows_per_problem, self._line_search_trials
         sysm = self.system
-        slope, vmax, dmax = self._scratch[2], self._scratch[3], self._scratch[4]
-        for a in (slope, vmax, dmax):
-            a.zero_()
+        stats = self._step_stats
+        stats.zero_()
         wp.launch(
             kk.step_stats_kernel,
-            dim=(B, self.rows_per_problem),
-            inputs=[
-                sysm.rhs,
-                sysm.increment,
-                self.mesh.num_vertices,
-                self.rows_per_problem,
-                slope,
-                vmax,
-                dmax,
-            ],
+            dim=(B, R),
+            inputs=[sysm.rhs, sysm.increment, self.mesh.num_vertices, R, stats[0], stats[1], stats[2]],
             device=self.device,
         )
-        slope_np = slope.numpy()
-        biggest = np.maximum(vmax.numpy(), dmax.numpy())
+        slope_np, vmax, dmax = stats.numpy()
+        biggest = np.maximum(vmax, dmax)
         alpha = np.where(working, np.minimum(1.0, max_step / np.maximum(biggest, 1e-300)), 0.0)
         first_trial = alpha.copy()
-        e0 = self._energy_at(self._q, self._positions, self._travel, active)
         result = np.zeros(B, dtype=int)
         searching = working.copy()
         bad_dir = searching & ~(slope_np < 0)
@@ -1731,36 +1760,53 @@ class QuasiStaticSolver:
         searching &= ~bad_dir
         alpha[bad_dir] = 0.0
         accepted = np.zeros(B, dtype=bool)
-        for _ in range(60):
-            if not searching.any():
-                break
-            self._step.assign(np.where(searching | accepted, alpha, 0.0))
+        e0 = None
+        if T == 1:
+            e0 = self._energy_at(self._q, self._positions, self._travel, active)
+        halvings = 0  # step lengths tried so far (alpha = first_trial / 2^halvings)
+        while searching.any() and halvings < 60:
+            # slot 0 of the first pass is the current state (step 0) when several trials share a pass
+            first = 1 if e0 is None else 0
+            n = min(T - first, 60 - halvings)
+            steps = np.zeros((T, B))
+            for j in range(n):
+                steps[first + j] = np.where(searching, alpha * 0.5**j, 0.0)
+            self._trial_step.assign(steps.reshape(-1))
+            states = (first + n) * B
             wp.launch(
                 kk.trial_state_kernel,
-                dim=(B, self.rows_per_problem),
-                inputs=[self._q, sysm.increment, self._step, self.rows_per_problem, self._q_trial],
+                dim=(states, R),
+                inputs=[self._q, sysm.increment, self._trial_step, R, B, self._q_trial],
                 device=self.device,
             )
-            self._unpack(self._q_trial, self._positions_trial, self._travel_trial)
-            e1 = self._energy_at(self._q_trial, self._positions_trial, self._travel_trial, active)
-            slack = 1e-12 * (np.abs(e0) + np.abs(e1)) + 1e-300
-            good = searching & np.isfinite(e1) & (e1 <= e0 + 1e-4 * alpha * slope_np + slack)
-            accepted |= good
-            searching &= ~good
-            alpha[searching] *= 0.5
-        still = searching
-        result[still] = 1
+            self._unpack(self._q_trial, self._positions_trial, self._travel_trial, states)
+            energies = self._energies_at(
+                self._q_trial, self._positions_trial, self._travel_trial, active, first + n
+            )
+            if e0 is None:
+                e0 = energies[0]
+            for j in range(n):
+                e1 = energies[first + j]
+                trial = alpha * 0.5**j
+                slack = 1e-12 * (np.abs(e0) + np.abs(e1)) + 1e-300
+                good = searching & np.isfinite(e1) & (e1 <= e0 + 1e-4 * trial * slope_np + slack)
+                alpha[good] = trial[good]
+                accepted |= good
+                searching &= ~good
+            alpha[searching] *= 0.5**n
+            halvings += n
+        result[searching] = 1
         alpha[~accepted] = 0.0
         self._step.assign(alpha)
         wp.launch(
             kk.trial_state_kernel,
-            dim=(B, self.rows_per_problem),
-            inputs=[self._q, sysm.increment, self._step, self.rows_per_problem, self._q_trial],
+            dim=(B, R),
+            inputs=[self._q, sysm.increment, self._step, R, B, self._q_trial],
             device=self.device,
         )
-        wp.copy(self._q, self._q_trial)
+        wp.copy(self._q, self._q_trial, count=B * R)
         self._unpack(self._q, self._positions, self._travel)
-        return result, first_trial
+        return result, first_trial, alpha
 
     def _start_increment(self, change, lam, start, end, mask):
         """Initial state of the masked problems' next increment: the predictor, then the loads. A predicted
@@ -1789,7 +1835,14 @@ class QuasiStaticSolver:
         wp.launch(
             kk.trial_state_kernel,
             dim=(self.batch_size, self.rows_per_problem),
-            inputs=[self._q_ref, self._last_increment, self._step, self.rows_per_problem, self._q],
+            inputs=[
+                self._q_ref,
+                self._last_increment,
+                self._step,
+                self.rows_per_problem,
+                self.batch_size,
+                self._q,
+            ],
             device=self.device,
         )
 

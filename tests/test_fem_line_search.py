@@ -1,0 +1,111 @@
+"""The Armijo line search evaluates several step lengths per energy pass (SolverOptions.line_search_trials):
+it must accept exactly the step that one-at-a-time backtracking accepts, so every answer is the same."""
+
+import numpy as np
+import pytest
+
+from defgraspnets import fem
+
+
+def _squeeze(line_search_trials: int, stabilization: float = 0.0):
+    """Two Franka-like pads squeeze a box off-centre with friction (force-controlled travel, so the
+    external work has a dof term) under gravity (nodal dead loads): the object turns while it is gripped."""
+    from fem_helpers import box_pad
+
+    mesh = fem.TetMesh.box(size=(0.02, 0.015, 0.025), divisions=(4, 3, 5), origin=(-0.01, -0.0075, -0.0125))
+    v, f = box_pad((0.012, 0.008, 0.012))
+    bodies = [
+        fem.RigidBody(
+            name, fem.TriangleMesh(v, f), control=fem.Control.force((0, -s, 0), dof="grip"), friction=0.7
+        )
+        for name, s in (("left", 1), ("right", -1))
+    ]
+    solver = fem.QuasiStaticSolver(
+        mesh,
+        bodies,
+        fem.Material(1e5, 0.3, 1000.0),
+        batch_size=2,
+        device="cpu",
+        options=fem.SolverOptions(
+            linear_solver="dense", line_search_trials=line_search_trials, stabilization=stabilization
+        ),
+    )
+    for name, s in (("left", 1), ("right", -1)):
+        T = np.tile(np.eye(4), (2, 1, 1))
+        T[:, 1, 3] = s * (0.0075 + 0.004)
+        T[1, 0, 3] = 0.002
+        solver.set_body_pose(name, T)
+    gravity = fem.BodyLoad(gravity=(0.0, 0.0, -9.81))
+    return solver.ramp(4, targets={"grip": np.array([1.0, 2.0])}, body_load=gravity)
+
+
+@pytest.mark.parametrize("stabilization", [0.0, 1e-3])
+def test_batched_trial_steps_reach_the_same_states_with_the_same_iterations(stabilization, monkeypatch):
+    cuts = []  # accepted / first step length of every line search
+    search = fem.QuasiStaticSolver._line_search
+
+    def recorded(self, working, active, max_step):
+        result, first_trial, alpha = search(self, working, active, max_step)
+        cuts.extend(alpha[working] / first_trial[working])
+        return result, first_trial, alpha
+
+    monkeypatch.setattr(fem.QuasiStaticSolver, "_line_search", recorded)
+    one_at_a_time = _squeeze(1, stabilization)
+    # the ramp backtracks past one pass of 8 trials (else the passes after the first go untested)
+    assert 0 < min(cuts) < 0.5**8
+    for trials in (2, 8):
+        batched = _squeeze(trials, stabilization)
+        for a, b in zip(one_at_a_time, batched, strict=True):
+            a.require_converged()
+            np.testing.assert_array_equal(b.newton_iterations, a.newton_iterations)
+            np.testing.assert_array_equal(b.displacement, a.displacement)
+            np.testing.assert_array_equal(b.travel["grip"], a.travel["grip"])
+    assert np.abs(one_at_a_time[-1].displacement).max() > 1e-4  # m: the pads moved the object
+
+
+def test_sealed_membrane_poke_with_batched_trial_steps_equals_one_at_a_time():
+    """The closed gas cavity's work enters every trial's energy (the cavity volume per trial state)."""
+    from defgraspnets.tactile.indenters import SphereIndenter
+    from defgraspnets.tactile.membrane import ATMOSPHERIC_PRESSURE, PVState, build_membrane
+    from defgraspnets.tactile.sensor import MembraneSimulator, membrane_solver_options
+
+    sensor = build_membrane(cap_divisions=6, layers=2)
+    gas = PVState(ATMOSPHERIC_PRESSURE + 1500.0, sensor.cavity_volume + sensor.dimensions.housing_volume)
+    readings = {}
+    for trials in (1, 3):
+        sim = MembraneSimulator(
+            sensor,
+            SphereIndenter(radius=0.01),
+            gas,
+            closed=True,
+            batch_size=1,
+            intrinsics=None,
+            options=membrane_solver_options("cpu", linear_solver="direct", line_search_trials=trials),
+            device="cpu",
+        )
+        readings[trials] = sim.indent([sim.pole_indentation(0.006)], render=False)[0]
+        assert readings[trials].converged
+    a, b = readings[1], readings[3]
+    assert a.contact_force[2] > 0.1  # N: a real poke
+    np.testing.assert_array_equal(b.contact_force, a.contact_force)
+    assert b.gauge_pressure == a.gauge_pressure
+
+
+@pytest.mark.parametrize("bad", [0, -1, True, 2.5, "8"])
+def test_line_search_trials_must_be_a_positive_int(bad):
+    with pytest.raises(ValueError, match="line_search_trials"):
+        fem.SolverOptions(line_search_trials=bad)
+
+
+def test_line_search_trials_default_by_device():
+    mesh = fem.TetMesh.box(size=(0.01, 0.01, 0.01), divisions=(1, 1, 1))
+    solver = fem.QuasiStaticSolver(mesh, [], fem.Material(1e5, 0.3, 1000.0), device="cpu")
+    assert solver._line_search_trials == 1
+    solver = fem.QuasiStaticSolver(
+        mesh,
+        [],
+        fem.Material(1e5, 0.3, 1000.0),
+        device="cpu",
+        options=fem.SolverOptions(line_search_trials=4),
+    )
+    assert solver._line_search_trials == 4
