@@ -117,3 +117,25 @@ def symmetric_pattern_matrices(pattern, batch: int, definite, rng) -> tuple[np.n
         ]
     )
     return dense, values
+
+
+def sealed_pole_poke(cap_divisions: int, depth: float, **solver_overrides):
+    """Reading of a 20 mm sphere poking the pole of the sealed, inflated membrane (1.5 kPa gauge, CPU) with
+    the sensor's solver options and ``solver_overrides`` (e.g. ``linear_solver``)."""
+    from defgraspnets.tactile.indenters import SphereIndenter
+    from defgraspnets.tactile.membrane import ATMOSPHERIC_PRESSURE, PVState, build_membrane
+    from defgraspnets.tactile.sensor import MembraneSimulator, membrane_solver_options
+
+    sensor = build_membrane(cap_divisions=cap_divisions, layers=2)
+    gas = PVState(ATMOSPHERIC_PRESSURE + 1500.0, sensor.cavity_volume + sensor.dimensions.housing_volume)
+    sim = MembraneSimulator(
+        sensor,
+        SphereIndenter(radius=0.01),
+        gas,
+        closed=True,
+        batch_size=1,
+        intrinsics=None,
+        options=membrane_solver_options("cpu", **solver_overrides),
+        device="cpu",
+    )
+    return sim, sim.indent([sim.pole_indentation(depth)], render=False)[0]

@@ -141,26 +141,12 @@ def test_sealed_membrane_poke_with_the_banded_solver_equals_the_direct_one():
     """The tactile sensor's closed gas cavity adds a rank-one stiffness (a second solve with the same
     factors, Sherman-Morrison) and its clamped rim fixes rows: a pole poke gives the same wrench and gas
     pressure with the banded solver as with SuperLU."""
-    from defgraspnets.tactile.indenters import SphereIndenter
-    from defgraspnets.tactile.membrane import ATMOSPHERIC_PRESSURE, PVState, build_membrane
-    from defgraspnets.tactile.sensor import MembraneSimulator, membrane_solver_options
+    from fem_helpers import sealed_pole_poke
 
-    sensor = build_membrane(cap_divisions=8, layers=2)
-    gas = PVState(ATMOSPHERIC_PRESSURE + 1500.0, sensor.cavity_volume + sensor.dimensions.housing_volume)
     readings = {}
     for linear_solver in ("direct", "banded"):
-        sim = MembraneSimulator(
-            sensor,
-            SphereIndenter(radius=0.01),
-            gas,
-            closed=True,
-            batch_size=1,
-            intrinsics=None,
-            options=membrane_solver_options("cpu", linear_solver=linear_solver),
-            device="cpu",
-        )
+        sim, readings[linear_solver] = sealed_pole_poke(8, 0.006, linear_solver=linear_solver)
         assert sim.solver.linear_solver == linear_solver
-        readings[linear_solver] = sim.indent([sim.pole_indentation(0.006)], render=False)[0]
         assert readings[linear_solver].converged
     a, b = readings["direct"], readings["banded"]
     assert a.contact_force[2] > 0.1  # N: a real poke

@@ -65,25 +65,11 @@ def test_batched_trial_steps_reach_the_same_states_with_the_same_iterations(stab
 
 def test_sealed_membrane_poke_with_batched_trial_steps_equals_one_at_a_time():
     """The closed gas cavity's work enters every trial's energy (the cavity volume per trial state)."""
-    from defgraspnets.tactile.indenters import SphereIndenter
-    from defgraspnets.tactile.membrane import ATMOSPHERIC_PRESSURE, PVState, build_membrane
-    from defgraspnets.tactile.sensor import MembraneSimulator, membrane_solver_options
+    from fem_helpers import sealed_pole_poke
 
-    sensor = build_membrane(cap_divisions=6, layers=2)
-    gas = PVState(ATMOSPHERIC_PRESSURE + 1500.0, sensor.cavity_volume + sensor.dimensions.housing_volume)
     readings = {}
     for trials in (1, 3):
-        sim = MembraneSimulator(
-            sensor,
-            SphereIndenter(radius=0.01),
-            gas,
-            closed=True,
-            batch_size=1,
-            intrinsics=None,
-            options=membrane_solver_options("cpu", linear_solver="direct", line_search_trials=trials),
-            device="cpu",
-        )
-        readings[trials] = sim.indent([sim.pole_indentation(0.006)], render=False)[0]
+        _, readings[trials] = sealed_pole_poke(6, 0.006, linear_solver="direct", line_search_trials=trials)
         assert readings[trials].converged
     a, b = readings[1], readings[3]
     assert a.contact_force[2] > 0.1  # N: a real poke
@@ -91,10 +77,15 @@ def test_sealed_membrane_poke_with_batched_trial_steps_equals_one_at_a_time():
     assert b.gauge_pressure == a.gauge_pressure
 
 
-@pytest.mark.parametrize("bad", [0, -1, True, 2.5, "8"])
-def test_line_search_trials_must_be_a_positive_int(bad):
-    with pytest.raises(ValueError, match="line_search_trials"):
-        fem.SolverOptions(line_search_trials=bad)
+@pytest.mark.parametrize(
+    "field, bad",
+    [("line_search_trials", b) for b in (0, -1, True, 2.5, "8")]
+    + [("max_factor_reuse", b) for b in (-1, False, 1.0, "2")],
+)
+def test_optional_integer_options_reject_other_values(field, bad):
+    with pytest.raises(ValueError, match=f"{field} must be None or an integer"):
+        fem.SolverOptions(**{field: bad})
+    fem.SolverOptions(**{field: None})
 
 
 def test_line_search_trials_default_by_device():

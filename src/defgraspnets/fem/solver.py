@@ -77,6 +77,14 @@ MAX_FACTOR_REUSE_DEFAULT = {False: 4, True: 0}
 LINE_SEARCH_TRIALS_DEFAULT = {False: 1, True: 8}
 
 
+def _check_optional_int(name: str, value, minimum: int) -> None:
+    """A SolverOptions field that is None (the default) or an integer (not a bool) >= ``minimum``."""
+    if value is not None and (
+        isinstance(value, bool) or not (isinstance(value, (int, np.integer)) and value >= minimum)
+    ):
+        raise ValueError(f"SolverOptions.{name} must be None or an integer >= {minimum}, got {value!r}")
+
+
 @dataclass(frozen=True)
 class SolverOptions:
     """Numerical settings of :class:`QuasiStaticSolver` (defaults suit E from 1e4 to 1e9 Pa).
@@ -240,14 +248,7 @@ class SolverOptions:
             raise ValueError(
                 f"SolverOptions.banded_min_problems must be an int >= 1, got {self.banded_min_problems!r}"
             )
-        if self.line_search_trials is not None and (
-            isinstance(self.line_search_trials, bool)
-            or not (isinstance(self.line_search_trials, (int, np.integer)) and self.line_search_trials >= 1)
-        ):
-            raise ValueError(
-                "SolverOptions.line_search_trials must be None or an int >= 1, "
-                f"got {self.line_search_trials!r}"
-            )
+        _check_optional_int("line_search_trials", self.line_search_trials, 1)
         if not (np.isfinite(self.stabilization) and self.stabilization >= 0):
             raise ValueError(f"SolverOptions.stabilization must be >= 0, got {self.stabilization!r}")
         if self.stabilization_release and self.stabilization == 0:
@@ -258,14 +259,7 @@ class SolverOptions:
             raise ValueError(
                 f"SolverOptions.max_newton_per_solve must be >= 0, got {self.max_newton_per_solve!r}"
             )
-        if self.max_factor_reuse is not None and (
-            isinstance(self.max_factor_reuse, bool)
-            or not (isinstance(self.max_factor_reuse, (int, np.integer)) and self.max_factor_reuse >= 0)
-        ):
-            raise ValueError(
-                "SolverOptions.max_factor_reuse must be None or an integer >= 0, "
-                f"got {self.max_factor_reuse!r}"
-            )
+        _check_optional_int("max_factor_reuse", self.max_factor_reuse, 0)
         if not 0 < self.factor_reuse_contraction < 1:
             raise ValueError(
                 "SolverOptions.factor_reuse_contraction must be in (0, 1), "
