@@ -176,6 +176,8 @@ def _flip_caps(
             break
         edge_face = {}
         for fi, tri in enumerate(f):
+            if tri[0] == tri[1] or tri[1] == tri[2] or tri[2] == tri[0]:
+                continue  # a repeated vertex (left by merging): dropped later, never a flip partner
             for k in range(3):
                 edge_face[(int(tri[k]), int(tri[(k + 1) % 3]))] = fi
         used, changed = set(), False
@@ -187,9 +189,8 @@ def _flip_caps(
             gi = edge_face.get((a, c))
             if gi is None or gi in used:
                 continue
-            g = [int(x) for x in f[gi]]
-            d = next(x for x in g if x not in (a, c))
-            if d == b:
+            d = next((int(x) for x in f[gi] if x not in (a, c)), None)  # the neighbour's third vertex
+            if d is None or d == b:
                 continue
             f[fi], f[gi] = (a, b, d), (b, c, d)
             used.update((fi, gi))
