@@ -52,6 +52,7 @@ def main(cfg: DictConfig) -> None:
         grasps = grasps[chosen]
     material = fem.Material(cfg.youngs_modulus, cfg.poisson_ratio, cfg.density, model=cfg.material_model)
     options = squeeze_solver_options(
+        **cfg.solver,  # further SolverOptions fields (a misspelled one is a TypeError naming it)
         linear_solver=cfg.linear_solver,
         max_newton_per_solve=cfg.max_newton_per_step,
         # null config values keep the squeeze defaults
@@ -108,6 +109,7 @@ def main(cfg: DictConfig) -> None:
                 "relag_friction_on_retry",
                 "banded_min_problems",
                 "line_search_trials",
+                *cfg.solver,
             )
             if hasattr(options, k)
         },

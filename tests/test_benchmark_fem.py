@@ -35,11 +35,13 @@ def test_benchmark_fem_writes_per_step_and_per_grasp_records(tmp_path):
         "linear_solver=dense",
         "profile_phases=true",
         "contact_smoothing=0.005",
+        "+solver.friction_stick_slip=0.01",
     )
     assert run.returncode == 0, run.stderr[-2000:]
     record = json.loads((tmp_path / "fem.json").read_text())
     assert record["linear_solver"] == "dense"
     assert record["solver_options"]["contact_smoothing"] == 0.005  # the override, not the squeeze default
+    assert record["solver_options"]["friction_stick_slip"] == 0.01  # any other SolverOptions field
     assert record["completed_steps"] == 3 and len(record["step_seconds"]) == 3
     assert record["object"]["vertices"] == 64 and record["grasps"] == 2
     per_grasp = np.array(record["newton_iterations_per_problem"])
@@ -105,3 +107,6 @@ def test_benchmark_fem_names_a_misspelled_key(tmp_path):
     run = _run(tmp_path, "num_grasp=2")
     assert run.returncode != 0
     assert "num_grasp" in run.stderr
+    run = _run(tmp_path, "+solver.friction_stick_slipp=0.01")  # a SolverOptions field, misspelled
+    assert run.returncode != 0
+    assert "friction_stick_slipp" in run.stderr
