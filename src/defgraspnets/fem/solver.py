@@ -1792,13 +1792,13 @@ class QuasiStaticSolver:
         result[searching] = 1
         alpha[~accepted] = 0.0
         self._step.assign(alpha)
+        # q += alpha dq in place (each row reads and writes only itself)
         wp.launch(
             kk.trial_state_kernel,
             dim=(B, R),
-            inputs=[self._q, sysm.increment, self._step, R, B, self._q_trial],
+            inputs=[self._q, sysm.increment, self._step, R, B, self._q],
             device=self.device,
         )
-        wp.copy(self._q, self._q_trial, count=B * R)
         self._unpack(self._q, self._positions, self._travel)
         return result, first_trial, alpha
 
