@@ -56,6 +56,8 @@ def main(cfg: DictConfig) -> None:
         "gas": dict(config["gas"]),
         "solver": {k: getattr(options, k) for k in ("linear_solver", "rtol", "contact_smoothing")},
         "selection": {"stride": cfg.stride, "limit": cfg.limit, "batch_size": cfg.batch_size},
+        # true: the paths of a batch wait for each other at every load step
+        "barrier": bool(cfg.barrier),
         "timing": "generate_tactile_from_config end to end: simulator build and inflation, solves, "
         "rendering, shard writing",
         "paths": counts["paths"],

@@ -80,7 +80,8 @@ def test_phase_timer_counts_one_linear_solve_per_newton_iteration_and_restores_t
 
 def test_benchmark_fem_solves_a_chosen_subset_of_the_sampled_grasps_as_in_the_whole_batch(tmp_path):
     """grasp_indices: the second of two sampled grasps alone takes the Newton iterations it took beside the
-    first (on the CPU a problem's path does not depend on its batch); an index out of range is named."""
+    first (on the CPU a problem's path does not depend on its batch), as it does with a barrier between the
+    force steps, where the batch makes more Newton passes; an index out of range is named."""
     common = (
         "object.size=[0.03,0.03,0.03]",
         "object.divisions=[3,3,3]",
@@ -90,13 +91,17 @@ def test_benchmark_fem_solves_a_chosen_subset_of_the_sampled_grasps_as_in_the_wh
         "linear_solver=dense",
     )
     records = []
-    for i, extra in enumerate(((), ("grasp_indices=[1]",))):
+    for i, extra in enumerate(((), ("grasp_indices=[1]",), ("barrier=true",))):
         out = tmp_path / f"fem{i}.json"
         run = _run(tmp_path, *common, *extra, f"out={out}")
         assert run.returncode == 0, run.stderr[-2000:]
         records.append(json.loads(out.read_text()))
-    both, alone = records
+    both, alone, barrier = records
     assert both["grasps"] == 2 and alone["grasps"] == 1
+    assert not both["barrier"] and barrier["barrier"]
+    assert barrier["newton_iterations_per_problem"] == both["newton_iterations_per_problem"]
+    assert barrier["status_per_problem"] == both["status_per_problem"]
+    assert barrier["newton_passes"] > both["newton_passes"] >= both["newton_iterations_total"]
     assert alone["newton_iterations_per_problem"] == both["newton_iterations_per_problem"][1:]
     assert alone["status_per_problem"] == both["status_per_problem"][1:]
     run = _run(tmp_path, *common, "grasp_indices=[2]")

@@ -208,29 +208,30 @@ def test_friction_is_relagged_from_the_kth_failed_attempt_of_a_load_step(first_a
     )
     material = fem.Material(1e7, 0.3, 1000.0, model="neohookean")
     solver = make_squeeze_solver(mesh, grasps, material, 0.7, device="cpu", options=options)
-    events, newton, solve = [], solver._newton, solver.solve
+    events, begin, finish = [], solver._begin_increments, solver._finish_increments
 
-    def spy_newton(mask, relag_every):
-        out = newton(mask, relag_every)
-        events.append((mask.copy(), relag_every.copy(), np.asarray(out[0]).copy()))
-        return out
+    def spy_begin(path, run, mask):
+        # a problem with no Newton iteration on its load step yet starts the step: no failures so far
+        events.append(("begin", mask.copy(), path.relag_every.copy(), path.newton_total == 0))
+        return begin(path, run, mask)
 
-    def spy_solve(*args, **kwargs):
-        events.append(None)  # a new load step: its failure counts start at zero
-        return solve(*args, **kwargs)
+    def spy_finish(path, run, done):
+        events.append(("finish", done.copy(), run.ok.copy()))
+        return finish(path, run, done)
 
-    solver._newton, solver.solve = spy_newton, spy_solve
+    solver._begin_increments, solver._finish_increments = spy_begin, spy_finish
     squeeze_ramp(solver, 15.0, 3)
     relagged = 0
-    for event in events:
-        if event is None:
-            failed = np.zeros(len(grasps), dtype=int)
-            continue
-        mask, relag, ok = event
+    failed = np.zeros(len(grasps), dtype=int)
+    for kind, mask, *flags in events:
         for b in np.flatnonzero(mask):
-            assert relag[b] == (failed[b] >= first_attempt)
-            relagged += int(relag[b])
-            failed[b] += int(not ok[b])
+            if kind == "begin":
+                relag, fresh = flags
+                failed[b] = 0 if fresh[b] else failed[b]
+                assert relag[b] == (failed[b] >= first_attempt)
+                relagged += int(relag[b])
+            else:
+                failed[b] += int(not flags[0][b])
     assert relagged > 0  # attempts failed often enough for the re-lag to start
 
 

@@ -102,6 +102,29 @@ def test_pole_indentation_is_axisymmetric_balanced_and_stiffening(open_sim, sens
 
 
 @pytest.mark.slow
+def test_paths_without_a_barrier_between_load_steps_give_the_same_readings(sensor):
+    """indent_series lets each poke path go on to its next load step without waiting for the other (the
+    default) or solves every step for both (barrier=True): the same readings, depth images included."""
+    readings = {}
+    for barrier in (True, False):
+        # a fresh simulator each: a withdrawn membrane is not the inflated one bit for bit
+        sim = MembraneSimulator(
+            sensor, SPHERE, _gas(sensor), batch_size=2, friction=0.5, intrinsics=PICO_FLEXX.scaled(0.25)
+        )
+        pole = sim.pole_indentation(0.008)
+        tilted = Indentation(Pose(pole.pose.position + [0.01, 0.005, 0.0]), 0.006, (0.3, 0.0, -1.0))
+        readings[barrier] = sim.indent_series([pole, tilted], [0.5, 1.0], barrier=barrier)
+    for with_barrier, without in zip(readings[True], readings[False], strict=True):
+        for a, b in zip(with_barrier, without, strict=True):
+            assert a.converged and b.converged
+            np.testing.assert_array_equal(b.positions, a.positions)
+            np.testing.assert_array_equal(b.contact_force, a.contact_force)
+            np.testing.assert_array_equal(b.base_wrench, a.base_wrench)
+            np.testing.assert_array_equal(b.depth.depth, a.depth.depth)
+            assert b.depth_travel == a.depth_travel
+    assert readings[False][1][1].contact_force[0] < -0.05  # N: the tilted poke pushes sideways
+
+
 def test_closed_capsule_is_stiffer_than_open(sensor, open_sim):
     closed = MembraneSimulator(sensor, SPHERE, _gas(sensor), closed=True, batch_size=1, intrinsics=None)
     # sealed at the same PV: it inflates less than the regulated one (its pressure drops as it grows)

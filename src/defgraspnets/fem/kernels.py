@@ -48,6 +48,23 @@ def trial_state_kernel(
 
 
 @wp.kernel
+def predicted_state_kernel(
+    q_ref: wp.array(dtype=wp.vec3d),
+    increment: wp.array(dtype=wp.vec3d),
+    ratio: wp.array(dtype=wp.float64),
+    mask: wp.array(dtype=wp.int32),
+    rows_per_problem: int,
+    q: wp.array(dtype=wp.vec3d),
+):
+    """q = q_ref + ratio[b] increment for the rows of problems with mask[b] != 0 (the load-step
+    predictor; the other problems' states are left as they are)."""
+    b, r = wp.tid()
+    if mask[b] != 0:
+        i = b * rows_per_problem + r
+        q[i] = q_ref[i] + ratio[b] * increment[i]
+
+
+@wp.kernel
 def masked_difference_kernel(
     a: wp.array(dtype=wp.vec3d),
     b: wp.array(dtype=wp.vec3d),

@@ -7,8 +7,10 @@
 Each phase is one method of :class:`~defgraspnets.fem.solver.QuasiStaticSolver`; the timer wraps it on
 this instance only (the class and other solvers are untouched) and synchronizes the device (Warp and, on
 CUDA, PyTorch's dense solves) before and after every call, so the seconds are the phase's own and not
-whatever asynchronous work happened to finish inside it. The synchronization costs time itself: profile
-a run, then time it without the timer (``scripts/benchmark_fem.py profile_phases=true`` records both).
+whatever asynchronous work happened to finish inside it. A phase called inside another (the assembly of
+the reaction forces inside ``results``) counts for itself only, not for the outer phase too. The
+synchronization costs time itself: profile a run, then time it without the timer
+(``scripts/benchmark_fem.py profile_phases=true`` records both).
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ PHASES = {
     "friction_check": "_friction_inconsistent",  # lag consistency of converged states
     "start_increment": "_start_increment",  # predictor and loads of a load increment
     "commit": "_commit",  # accept converged states (friction memory, predictor data)
+    "results": "_results",  # the equilibria returned (stress, contact forces, reactions), per level
 }
 
 
@@ -49,6 +52,7 @@ class PhaseTimer:
         self.calls: dict[str, int] = defaultdict(int)
         self.wall = 0.0
         self._start = 0.0
+        self._inner: list[float] = []  # per running phase: seconds of the phases called inside it
 
     def _sync(self):
         synchronize(self.solver.device)
@@ -57,12 +61,16 @@ class PhaseTimer:
         def timed(*args, **kwargs):
             self._sync()
             start = time.perf_counter()
+            self._inner.append(0.0)
             try:
                 return method(*args, **kwargs)
             finally:
                 self._sync()
-                self.seconds[phase] += time.perf_counter() - start
+                seconds = time.perf_counter() - start
+                self.seconds[phase] += seconds - self._inner.pop()
                 self.calls[phase] += 1
+                if self._inner:
+                    self._inner[-1] += seconds
 
         return timed
 

@@ -90,6 +90,26 @@ class Equilibrium:
                 out[f.name] = np.asarray(v)[rows]
         return Equilibrium(**out)
 
+    def put(self, rows, other: Equilibrium) -> None:
+        """Problems ``rows`` (integer indices) <- the problems of ``other`` (one per row), in place: every
+        per-problem array and every array of the per-body / per-dof dicts. Both must hold the same fields."""
+        rows = np.asarray(rows)
+        if rows.ndim != 1 or len(rows) != other.batch_size:
+            raise ValueError(f"{other.batch_size} problems cannot fill rows of shape {rows.shape}")
+        for f in fields(self):
+            if f.name in ("mesh", "extras"):
+                continue
+            mine, theirs = getattr(self, f.name), getattr(other, f.name)
+            if (mine is None) != (theirs is None):
+                raise ValueError(f"field {f.name!r} is recorded in only one of the equilibria")
+            if mine is None:
+                continue
+            if isinstance(mine, dict):
+                for k, a in mine.items():
+                    a[rows] = theirs[k]
+            else:
+                mine[rows] = theirs
+
     @property
     def converged(self) -> np.ndarray:
         return self.status == SolveStatus.CONVERGED

@@ -30,6 +30,7 @@ Flags are sticky until :meth:`QuasiStaticSolver.reset`; flagged problems are nev
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -355,6 +356,118 @@ def pinched_vertices(normal_force: np.ndarray, normal: np.ndarray, max_cosine: f
     return out
 
 
+def _load_change(start: dict, end: dict) -> np.ndarray:
+    """(B, K) change of every load and target along a load path, per problem (the predictor compares it)."""
+    B = len(start["dof"])
+    return np.concatenate(
+        [(end[k] - start[k]).reshape(B, -1) for k in ("dof", "nodal_force", "prescribed", "pressure")]
+        + [pose_change(start["poses"], end["poses"]).reshape(B, -1)],
+        1,
+    )
+
+
+@dataclass
+class _LoadPath:
+    """Per-problem load stepping along a load path from ``start`` to ``end`` (dicts of (B, ...) loads, as
+    ``QuasiStaticSolver._loads_now``): converged fraction, next trial fraction, failed attempts, counts."""
+
+    start: dict
+    end: dict
+    change: np.ndarray  # (B, K) end - start (_load_change)
+    todo: np.ndarray  # (B,) bool: on the path, not at its end and not flagged
+    lam_done: np.ndarray  # (B,) load fraction of the last converged increment
+    lam_try: np.ndarray  # (B,) load fraction of the increment being solved
+    bisections: np.ndarray  # (B,) failed increments on this path
+    relag_every: np.ndarray  # (B,) bool: re-lag friction at every Newton iteration (after a failure)
+    newton_total: np.ndarray  # (B,) Newton iterations on this path
+    linear_total: np.ndarray  # (B,) Krylov iterations on this path
+    residual: np.ndarray  # (B,) residual of the last Newton solve
+    releasing: np.ndarray  # (B,) bool: Newton runs without the stabilization springs (stabilization_release)
+    held_newton: np.ndarray  # (B,) iterations of the stabilized Newton solve before the release
+    held_linear: np.ndarray
+
+    @classmethod
+    def empty(cls, batch_size: int) -> _LoadPath:
+        B = batch_size
+        return cls(
+            start={},
+            end={},
+            change=np.zeros((B, 0)),
+            todo=np.zeros(B, dtype=bool),
+            lam_done=np.zeros(B),
+            lam_try=np.zeros(B),
+            bisections=np.zeros(B, dtype=int),
+            relag_every=np.zeros(B, dtype=bool),
+            newton_total=np.zeros(B, dtype=int),
+            linear_total=np.zeros(B, dtype=int),
+            residual=np.zeros(B),
+            releasing=np.zeros(B, dtype=bool),
+            held_newton=np.zeros(B, dtype=int),
+            held_linear=np.zeros(B, dtype=int),
+        )
+
+    def begin(self, mask: np.ndarray, initial_fraction: float) -> None:
+        """The masked problems start the path (``start``, ``end`` and ``change`` rows set by the caller)."""
+        self.todo[mask] = True
+        self.lam_done[mask] = 0.0
+        self.lam_try[mask] = float(np.clip(initial_fraction, 1e-6, 1.0))
+        for a in (self.bisections, self.newton_total, self.linear_total, self.held_newton, self.held_linear):
+            a[mask] = 0
+        self.relag_every[mask] = False
+        self.releasing[mask] = False
+        self.residual[mask] = 0.0
+
+
+@dataclass
+class _NewtonRun:
+    """Per-problem state of the Newton iterations of the current load increments: a problem enters with
+    ``QuasiStaticSolver._newton_begin`` and leaves ``working`` when it converges (``ok``) or fails."""
+
+    relag_every: np.ndarray  # (B,) bool, shared with the load path
+    working: np.ndarray  # (B,) bool: iterating
+    started: np.ndarray  # (B,) bool: begun and not yet settled by the load stepping
+    ok: np.ndarray
+    status: np.ndarray  # (B,) SolveStatus of a failure
+    passes: np.ndarray  # (B,) passes since the start (a safety bound)
+    iters: np.ndarray  # (B,) Newton iterations
+    lin_iters: np.ndarray  # (B,) Krylov iterations
+    residual: np.ndarray  # (B,) last residual [N]
+    relag: np.ndarray  # (B,) bool: re-lag the friction normal forces at the next pass
+    relags: np.ndarray  # (B,) re-lags of converged but inconsistent states
+    last_relag: np.ndarray  # (B,) iteration of the last such re-lag
+    stale: np.ndarray  # (B,) bool: the next re-lag extrapolates (Aitken)
+    exact: np.ndarray  # (B,) int32: exact Hessian
+    damping: np.ndarray  # (B,) Levenberg-Marquardt factor of the exact Hessian
+    stale_step: np.ndarray  # (B,) bool: chord Newton's last step came from a stale factor and was cut
+    dof_targets: np.ndarray  # (B, D) |actuator force targets| (force scale of the tolerance)
+    atol: np.ndarray | float = 0.0
+    max_step: float = 0.0
+    escape: float = 0.0
+
+    @classmethod
+    def empty(cls, batch_size: int, num_dofs: int, relag_every: np.ndarray) -> _NewtonRun:
+        B = batch_size
+        return cls(
+            relag_every=relag_every,
+            working=np.zeros(B, dtype=bool),
+            started=np.zeros(B, dtype=bool),
+            ok=np.zeros(B, dtype=bool),
+            status=np.full(B, SolveStatus.NOT_CONVERGED, dtype=np.int32),
+            passes=np.zeros(B, dtype=int),
+            iters=np.zeros(B, dtype=int),
+            lin_iters=np.zeros(B, dtype=int),
+            residual=np.full(B, np.inf),
+            relag=np.zeros(B, dtype=bool),
+            relags=np.zeros(B, dtype=int),
+            last_relag=np.zeros(B, dtype=int),
+            stale=np.zeros(B, dtype=bool),
+            exact=np.zeros(B, dtype=np.int32),
+            damping=np.zeros(B),
+            stale_step=np.zeros(B, dtype=bool),
+            dof_targets=np.zeros((B, num_dofs)),
+        )
+
+
 class QuasiStaticSolver:
     """Quasi-static FEM solver for B problems sharing one tet mesh and one set of rigid bodies.
 
@@ -669,6 +782,11 @@ class QuasiStaticSolver:
         self._damping_scale[:, :N, :] = (self._youngs_np[:, None] * self.mesh.vertex_size[None])[..., None]
         self.system.forget_factors()  # factorizations of the old materials' Hessians
 
+    def _dof(self, name: str) -> int:
+        if name not in self.dof_names:
+            raise KeyError(f"unknown dof {name!r}; dofs are {self.dof_names}")
+        return self.dof_names.index(name)
+
     def _body(self, name: str) -> int:
         for k, b in enumerate(self.bodies):
             if b.name == name:
@@ -754,6 +872,8 @@ class QuasiStaticSolver:
         self._gas_law[:] = 0.0
         self._gas_target[:] = 0.0
         self.status[:] = SolveStatus.CONVERGED
+        #: Newton passes of the batch since the reset (one assembly each, for every problem then iterating)
+        self.newton_passes = 0
         self._stabilization_at_convergence = np.zeros(self.batch_size)
         self.system.forget_factors()
         self._unpack(self._q, self._positions, self._travel)
@@ -1202,9 +1322,12 @@ class QuasiStaticSolver:
             return np.zeros(B, dtype=bool)
         self._unpack(self._q, self._positions, self._travel)
         self._contact_state(self._positions, self._travel)
-        fn = self._c_force.numpy().reshape(B, S, K)
-        nrm = self._c_normal.numpy().reshape(B, S, K, 3)
-        return mask & pinched_vertices(fn, nrm).any(axis=1)
+        m = np.nonzero(mask)[0]
+        fn = self._c_force.numpy().reshape(B, S, K)[m]
+        nrm = self._c_normal.numpy().reshape(B, S, K, 3)[m]
+        out = np.zeros(B, dtype=bool)
+        out[m] = pinched_vertices(fn, nrm).any(axis=1)
+        return out
 
     def _friction_inconsistent(self, mask: np.ndarray, tol: np.ndarray) -> np.ndarray:
         """Problems in ``mask`` whose friction capacities, computed from lagged normal forces, are not
@@ -1302,35 +1425,37 @@ class QuasiStaticSolver:
     # ------------------------------------------------------------------ loads at a load fraction
     def _apply_increment(self, lam: np.ndarray, start: dict, end: dict, mask: np.ndarray):
         """Set loads, actuator targets and prescribed displacements of the masked problems to
-        start + lam (end - start), and move their prescribed components there."""
+        start + lam (end - start), and move their prescribed components there (only their rows are
+        computed: without a barrier the load stepping starts a few problems' increments at a time)."""
         B, N, D = self.batch_size, self.mesh.num_vertices, self.num_dofs
-        w = lam[:, None, None]
-        f = start["nodal_force"] + w * (end["nodal_force"] - start["nodal_force"])
+        m = np.nonzero(mask)[0]
+        lam_m = lam[m]
+        w = lam_m[:, None, None]
         nf = self._nodal_force.numpy().reshape(B, N, 3)
-        nf[mask] = f[mask]
+        nf[m] = start["nodal_force"][m] + w * (end["nodal_force"][m] - start["nodal_force"][m])
         self._nodal_force.assign(nf.reshape(-1, 3))
-        targets = start["dof"] + lam[:, None] * (end["dof"] - start["dof"])
-        q = self._q.numpy().reshape(B, self.rows_per_problem, 3)
+        targets = start["dof"][m] + lam_m[:, None] * (end["dof"][m] - start["dof"][m])
+        force_dofs = np.array([mode == "force" for mode in self.dof_mode], dtype=bool)
+        moved = bool(D and not force_dofs.all()) or bool(self.fixed_mask.any())
+        q = self._q.numpy().reshape(B, self.rows_per_problem, 3) if moved else None
         if D:
-            force_dofs = np.array([m == "force" for m in self.dof_mode])
             dof_force = self._dof_force.numpy()[: B * D].reshape(B, D)
-            dof_force[mask] = np.where(force_dofs[None], targets, 0.0)[mask]
+            dof_force[m] = np.where(force_dofs[None], targets, 0.0)
             self._dof_force.assign(np.concatenate([dof_force.ravel(), np.zeros(max(B * D, 1) - B * D)]))
-            disp = ~force_dofs
-            q[np.ix_(mask, N + np.nonzero(disp)[0], [0])] = targets[np.ix_(mask, np.nonzero(disp)[0])][
-                ..., None
-            ]
-        law = start["pressure"] + lam[:, None] * (end["pressure"] - start["pressure"])
-        self._gas_law[mask] = law[mask]
+            disp = np.nonzero(~force_dofs)[0]
+            if disp.size:
+                q[np.ix_(m, N + disp, [0])] = targets[:, disp][..., None]
+        self._gas_law[m] = start["pressure"][m] + lam_m[:, None] * (end["pressure"][m] - start["pressure"][m])
         if self.num_bodies and end["poses"] is not start["poses"]:
-            self._poses[mask] = interpolate_poses(start["poses"], end["poses"], lam)[mask]
+            self._poses[m] = interpolate_poses(start["poses"][m], end["poses"][m], lam_m)
             self._update_bodies()
         if self.fixed_mask.any():
-            pres = start["prescribed"] + w * (end["prescribed"] - start["prescribed"])
-            qv = q[:, :N]
-            sel = mask[:, None, None] & self.fixed_mask[None]
-            qv[sel] = pres[sel]
-        self._q.assign(q.reshape(-1, 3))
+            pres = start["prescribed"][m] + w * (end["prescribed"][m] - start["prescribed"][m])
+            qv = q[m, :N]
+            qv[:, self.fixed_mask] = pres[:, self.fixed_mask]
+            q[m, :N] = qv
+        if moved:
+            self._q.assign(q.reshape(-1, 3))
         self._unpack(self._q, self._positions, self._travel)
 
     def _loads_now(self) -> dict:
@@ -1375,9 +1500,7 @@ class QuasiStaticSolver:
         start = self._loads_now()
         if targets:
             for name, value in targets.items():
-                if name not in self.dof_names:
-                    raise KeyError(f"unknown dof {name!r}; dofs are {self.dof_names}")
-                self._dof_target[:, self.dof_names.index(name)] = _per_problem(value, B, f"target {name!r}")
+                self._dof_target[:, self._dof(name)] = _per_problem(value, B, f"target {name!r}")
         if body_load is not None:
             if not isinstance(body_load, BodyLoad):
                 raise TypeError("body_load must be a BodyLoad")
@@ -1402,89 +1525,158 @@ class QuasiStaticSolver:
                 T = check_rigid_transform(pose, f"pose of body {name!r}")
                 end["poses"][:, self._body(name)] = np.broadcast_to(T, (B, 4, 4))
 
-        o = self.options
-        todo = self.status == SolveStatus.CONVERGED
-        lam_done = np.zeros(B)
-        lam_try = np.where(todo, float(np.clip(initial_fraction, 1e-6, 1.0)), 0.0)
-        bisections = np.zeros(B, dtype=int)
-        relag_every = np.zeros(B, dtype=bool)  # re-lag friction at every Newton iteration (after a failure)
-        newton_total = np.zeros(B, dtype=int)
-        linear_total = np.zeros(B, dtype=int)
-        residual = np.zeros(B)
-        change = np.concatenate(
-            [(end[k] - start[k]).reshape(B, -1) for k in ("dof", "nodal_force", "prescribed", "pressure")]
-            + [pose_change(start["poses"], end["poses"]).reshape(B, -1)],
-            1,
-        )
-        while todo.any():
-            log.debug("load increment: fractions %s -> %s", lam_done[todo][:4], lam_try[todo][:4])
-            self._start_increment(change * (lam_try - lam_done)[:, None], lam_try, start, end, todo)
-            ok, fail_status, it, lin, res = self._newton(todo, relag_every)
-            if o.stabilization > 0 and o.stabilization_release and (todo & ok).any():
-                # continue the stabilized equilibria without the springs; only an exact one is accepted
-                release = todo & ok
-                self._stabilize(~release)
-                self.system.forget_factors(release)  # factored with the springs' diagonal
-                ok_r, status_r, it_r, lin_r, res_r = self._newton(release, relag_every)
-                self._stabilize(np.ones(B, dtype=bool))
-                self.system.forget_factors(release)
-                ok[release], fail_status[release] = ok_r[release], status_r[release]
-                it, lin, res = it + it_r, lin + lin_r, np.where(release, res_r, res)
-            newton_total += it
-            linear_total += lin
-            residual = np.where(todo, res, residual)
-            # an equilibrium in which a body pressed through the object between its vertices is no answer:
-            # retried with smaller increments like a failed one, flagged PINCHED if it persists
-            pinched = self._pinched(todo & ok)
-            fail_status[pinched] = SolveStatus.PINCHED
-            good = todo & ok & ~pinched
-            bad = todo & ~good
-            if good.any():
-                self._commit(good, change * (lam_try - lam_done)[:, None])
-                step = lam_try - lam_done
-                lam_done[good] = lam_try[good]
-                finished = good & (lam_done >= 1.0)
-                todo &= ~finished
-                grow = good & ~finished
-                lam_try[grow] = np.minimum(1.0, lam_done[grow] + 2.0 * step[grow])
-            if bad.any():
-                self._restore(bad)
-                self.system.forget_factors(bad)  # made at states of the failed increment
-                bisections[bad] += 1
-                tiny = (lam_try - lam_done) < 2.0**-o.max_load_bisections
-                giveup = bad & (
-                    (bisections > 4 * o.max_load_bisections) | tiny | (fail_status == SolveStatus.NONFINITE)
-                )
-                for b in np.nonzero(giveup)[0]:
-                    self.status[b] = fail_status[b]
-                    log.info(
-                        "problem %d flagged %s at load fraction %.4g",
-                        b,
-                        SolveStatus(fail_status[b]).name,
-                        lam_done[b],
-                    )
-                todo &= ~giveup
-                retry = bad & ~giveup
-                lam_try[retry] = 0.5 * (lam_done[retry] + lam_try[retry])
-                if o.relag_friction_on_retry:  # from the k-th failed attempt of the step on (True: k = 1)
-                    relag_every |= retry & (bisections >= int(o.relag_friction_on_retry))
-            if o.max_newton_per_solve:
-                spent = todo & (newton_total >= o.max_newton_per_solve)
-                for b in np.nonzero(spent)[0]:
-                    self.status[b] = SolveStatus.NOT_CONVERGED
-                    log.info(
-                        "problem %d flagged NOT_CONVERGED at load fraction %.4g: %d Newton iterations spent",
-                        b,
-                        lam_done[b],
-                        newton_total[b],
-                    )
-                todo &= ~spent
+        path = _LoadPath.empty(B)
+        path.start, path.end = start, end
+        path.change = _load_change(start, end)
+        path.begin(self.status == SolveStatus.CONVERGED, initial_fraction)
+        self._advance(path, barrier=True)
         # problems that failed stay at their last converged state; record how far they got
         if end["poses"] is not start["poses"]:
-            self._poses = interpolate_poses(start["poses"], end["poses"], lam_done)
+            self._poses = interpolate_poses(start["poses"], end["poses"], path.lam_done)
             self._update_bodies()
         self._unpack(self._q, self._positions, self._travel)
-        return self._results(lam_done, newton_total, linear_total, residual)
+        return self._results(path.lam_done, path.newton_total, path.linear_total, path.residual)
+
+    def solve_sequence(
+        self,
+        levels,
+        on_level: Callable[[int, Equilibrium], None] | None = None,
+        progress: bool = False,
+        check: Callable[[np.ndarray, Equilibrium, np.ndarray], np.ndarray] | None = None,
+    ) -> list[Equilibrium]:
+        """Solve a sequence of target levels; each problem starts its next level as soon as it has reached
+        the current one (no barrier between the levels).
+
+        The equilibria are those of ``[self.solve(targets=level) for level in levels]``, problem by problem
+        (a problem's path depends only on its own data; with the solvers that factor one problem at a time
+        they are bit-identical), but a batch no longer waits at every level for its slowest problem: while a
+        hard grasp spends hundreds of Newton iterations on one force step, the others go on with theirs, and
+        the batch takes about as many Newton iterations as its slowest problem's own path instead of the
+        sum over the levels of each level's slowest problem.
+
+        Args:
+            levels: sequence of dicts dof name -> target (force [N] or travel [m], scalar or (B,)), as
+                ``solve(targets=...)``; unnamed dofs keep their previous level's targets.
+            on_level: ``on_level(k, equilibrium)`` is called for level k once every problem has reached it
+                (or was flagged), in level order; it must not change the solver.
+            progress: a progress bar over the levels all problems have reached.
+            check: ``check(levels, part, rows)`` is called with the problems ``rows`` that have just reached
+                the levels ``levels`` (one per row) and their equilibria ``part`` (one per row), before they
+                go on; it returns one :class:`SolveStatus` code per row: ``CONVERGED`` lets the problem go on,
+                any other code flags it there (as setting ``solver.status`` between two ``solve`` calls
+                does), e.g. a tactile indenter that lost contact with the membrane.
+
+        Returns the equilibria of the levels, one per level.
+        """
+        B = self.batch_size
+        levels = list(levels)
+        if not levels:
+            raise ValueError("solve_sequence needs at least one level")
+        table = []  # (B, D) dof targets of each level
+        targets = self._dof_target.copy()
+        for k, level in enumerate(levels):
+            if not isinstance(level, Mapping):
+                raise TypeError(f"level {k} must be a dict dof name -> target, got {type(level).__name__}")
+            targets = targets.copy()
+            for name, value in level.items():
+                targets[:, self._dof(name)] = _per_problem(value, B, f"target {name!r} of level {k}")
+            table.append(targets)
+        table = np.stack(table)
+        L = len(table)
+        bar = None
+        if progress:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=L, desc="load levels", leave=False)
+
+        start = self._loads_now()
+        end = {k: (v if k == "poses" else v.copy()) for k, v in start.items()}
+        end["dof"] = table[0].copy()
+        self._dof_target[:] = table[0]
+        path = _LoadPath.empty(B)
+        path.start, path.end = start, end
+        path.change = _load_change(start, end)
+        level = np.zeros(B, dtype=int)
+        results: list[Equilibrium | None] = [None] * L
+        filled = np.zeros((L, B), dtype=bool)
+        emitted = 0
+
+        def store(part: Equilibrium, rows: np.ndarray, levels_of_rows: np.ndarray) -> None:
+            """Rows ``rows`` of the levels ``levels_of_rows`` <- the problems of ``part`` (one per row)."""
+            for s in np.unique(levels_of_rows):
+                sel = np.nonzero(levels_of_rows == s)[0]
+                if results[s] is None:
+                    results[s] = part.take(np.zeros(B, dtype=int))
+                results[s].put(rows[sel], part.take(sel))
+                filled[s, rows[sel]] = True
+
+        def flagged_hereafter(part: Equilibrium, rows: np.ndarray, first: np.ndarray) -> None:
+            """A flagged problem stays at its last converged state: the levels from ``first`` on report it
+            there, as solve() reports a flagged problem (no load fraction, iterations or residual)."""
+            if not rows.size:
+                return
+            for a in (part.load_fraction, part.newton_iterations, part.linear_iterations, part.residual):
+                a[:] = 0
+            for s in range(int(first.min()), L):
+                later = np.nonzero(first <= s)[0]
+                store(part.take(later), rows[later], np.full(later.size, s))
+
+        def emit() -> None:
+            nonlocal emitted
+            while emitted < L and filled[emitted].all():
+                if on_level is not None:
+                    on_level(emitted, results[emitted])
+                emitted += 1
+                if bar is not None:
+                    bar.update(1)
+
+        def level_done(left: np.ndarray) -> np.ndarray:
+            """Record the problems that left their level; the converged ones move on. Returns those."""
+            rows = np.nonzero(left)[0]
+            part = self._results(path.lam_done, path.newton_total, path.linear_total, path.residual, rows)
+            if check is not None:
+                reached = np.nonzero(part.converged)[0]
+                if reached.size:
+                    codes = np.asarray(check(level[rows[reached]], part.take(reached), rows[reached]))
+                    if codes.shape != reached.shape:
+                        raise ValueError(f"check must return {reached.size} status codes, got {codes.shape}")
+                    flag = reached[codes != SolveStatus.CONVERGED]
+                    part.status[flag] = codes[codes != SolveStatus.CONVERGED]
+                    self.status[rows[flag]] = part.status[flag]
+            store(part, rows, level[rows])
+            flagged = np.nonzero(self.status[rows] != SolveStatus.CONVERGED)[0]
+            flagged_hereafter(part.take(flagged), rows[flagged], level[rows[flagged]] + 1)
+            move = left & (self.status == SolveStatus.CONVERGED) & (level < L - 1)
+            if move.any():
+                level[move] += 1
+                for key in ("dof", "nodal_force", "prescribed", "pressure"):
+                    path.start[key][move] = path.end[key][move]
+                path.end["dof"][move] = table[level[move], np.nonzero(move)[0]]
+                self._dof_target[move] = path.end["dof"][move]
+                path.change[move] = _load_change(
+                    {k: v[move] for k, v in path.start.items()}, {k: v[move] for k, v in path.end.items()}
+                )
+                path.begin(move, 1.0)
+            emit()
+            return move
+
+        idle = self.status != SolveStatus.CONVERGED
+        if idle.any():  # flagged before this call: every level reports them at their state
+            rows = np.nonzero(idle)[0]
+            part = self._results(np.zeros(B), np.zeros(B, int), np.zeros(B, int), np.zeros(B), rows)
+            flagged_hereafter(part, rows, np.zeros(rows.size, dtype=int))
+        path.begin(~idle, 1.0)
+        try:
+            self._advance(path, barrier=False, level_done=level_done)
+        finally:
+            if bar is not None:
+                bar.close()
+        self._dof_target[:] = table[-1]
+        self._unpack(self._q, self._positions, self._travel)
+        emit()
+        if emitted < L:  # cannot happen: every problem either reaches the last level or is flagged
+            raise RuntimeError(f"solve_sequence ended with levels {emitted}..{L - 1} incomplete")
+        return results
 
     def ramp(
         self,
@@ -1520,6 +1712,136 @@ class QuasiStaticSolver:
             out.append(self.solve(tg, bl, pressure=gas))
         return out
 
+    # ------------------------------------------------------------------ load stepping
+    def _advance(self, path: _LoadPath, barrier: bool, level_done=None) -> None:
+        """Drive the load increments of ``path.todo`` to the end of their load paths.
+
+        Every Newton pass iterates all problems whose increment is still running. With ``barrier`` the
+        problems that converge or fail wait for the last one before their next increments start together
+        (``solve``); without it each problem's increment is settled as soon as its Newton iterations end
+        and its next one starts at the next pass. ``level_done(left)`` is called with the problems that
+        left their load path (reached its end or were flagged) and returns those it gave a new one
+        (``path.begin``), which continue."""
+        o = self.options
+        run = _NewtonRun.empty(self.batch_size, self.num_dofs, path.relag_every)
+        run.atol = 1e-14 * self._youngs_np * self.mesh.diameter**2
+        run.max_step = o.max_step_fraction * self.mesh.diameter
+        run.escape = o.escape_fraction * self.mesh.diameter
+        release = o.stabilization > 0 and o.stabilization_release
+        springs = np.ones(self.batch_size, dtype=bool)  # increment stabilization springs on, per problem
+        self._begin_increments(path, run, path.todo)
+        while run.working.any():
+            self._newton_pass(run)
+            if barrier and run.working.any():
+                continue
+            done = run.started & ~run.working
+            if not done.any():
+                continue
+            run.started &= ~done
+            if release:
+                # an increment that converged stabilized continues without the springs, from that state;
+                # only an exact equilibrium is accepted
+                freed = done & run.ok & ~path.releasing
+                back = done & path.releasing
+                if freed.any() or back.any():
+                    path.held_newton[freed] = run.iters[freed]
+                    path.held_linear[freed] = run.lin_iters[freed]
+                    path.releasing[freed] = True
+                    path.releasing[back] = False
+                    springs[freed] = False
+                    springs[back] = True
+                    self.system.forget_factors(freed | back)  # factored with (without) the springs' diagonal
+                    self._newton_begin(run, freed)
+                    self._stabilize(springs)
+                    if np.any(run.damping):
+                        self._set_damping_shift(run.damping)
+                    done &= ~freed
+                    if barrier and freed.any():
+                        run.started |= done  # the others wait for the released ones, as in lockstep
+                        continue
+            if not done.any():
+                continue
+            left = self._finish_increments(path, run, done)
+            again = path.todo & done
+            if level_done is not None and left.any():
+                again |= level_done(left)
+            if again.any():
+                self._begin_increments(path, run, again)
+        self._exact_hessian.zero_()
+        self._set_damping_shift(np.zeros(self.batch_size))
+
+    def _begin_increments(self, path: _LoadPath, run: _NewtonRun, mask: np.ndarray) -> None:
+        """Start the next load increment (``path.lam_done`` -> ``path.lam_try``) of the masked problems."""
+        if not mask.any():
+            return
+        log.debug("load increment: fractions %s -> %s", path.lam_done[mask][:4], path.lam_try[mask][:4])
+        step = path.change * (path.lam_try - path.lam_done)[:, None]
+        self._start_increment(step, path.lam_try, path.start, path.end, mask)
+        self._newton_begin(run, mask)
+
+    def _finish_increments(self, path: _LoadPath, run: _NewtonRun, done: np.ndarray) -> np.ndarray:
+        """Settle the increments of the problems ``done`` with their Newton iterations: commit and grow the
+        next increment, or restore and halve it, or flag the problem. Returns the problems that left their
+        load path (reached its end or were flagged)."""
+        o = self.options
+        ok, fail_status = run.ok & done, run.status.copy()
+        path.newton_total[done] += run.iters[done] + path.held_newton[done]
+        path.linear_total[done] += run.lin_iters[done] + path.held_linear[done]
+        path.held_newton[done] = 0
+        path.held_linear[done] = 0
+        path.residual[done] = run.residual[done]
+        # an equilibrium in which a body pressed through the object between its vertices is no answer:
+        # retried with smaller increments like a failed one, flagged PINCHED if it persists
+        pinched = self._pinched(ok)
+        fail_status[pinched] = SolveStatus.PINCHED
+        good = ok & ~pinched
+        bad = done & ~good
+        left = np.zeros(self.batch_size, dtype=bool)
+        if good.any():
+            step = path.lam_try - path.lam_done
+            self._commit(good, path.change * step[:, None])
+            path.lam_done[good] = path.lam_try[good]
+            finished = good & (path.lam_done >= 1.0)
+            path.todo &= ~finished
+            left |= finished
+            grow = good & ~finished
+            path.lam_try[grow] = np.minimum(1.0, path.lam_done[grow] + 2.0 * step[grow])
+        if bad.any():
+            self._restore(bad)
+            self.system.forget_factors(bad)  # made at states of the failed increment
+            path.bisections[bad] += 1
+            tiny = (path.lam_try - path.lam_done) < 2.0**-o.max_load_bisections
+            giveup = bad & (
+                (path.bisections > 4 * o.max_load_bisections) | tiny | (fail_status == SolveStatus.NONFINITE)
+            )
+            for b in np.nonzero(giveup)[0]:
+                self.status[b] = fail_status[b]
+                log.info(
+                    "problem %d flagged %s at load fraction %.4g",
+                    b,
+                    SolveStatus(fail_status[b]).name,
+                    path.lam_done[b],
+                )
+            path.todo &= ~giveup
+            left |= giveup
+            retry = bad & ~giveup
+            path.lam_try[retry] = 0.5 * (path.lam_done[retry] + path.lam_try[retry])
+            if o.relag_friction_on_retry:  # from the k-th failed attempt of the step on (True: k = 1)
+                path.relag_every |= retry & (path.bisections >= int(o.relag_friction_on_retry))
+        if o.max_newton_per_solve:
+            spent = path.todo & done & (path.newton_total >= o.max_newton_per_solve)
+            for b in np.nonzero(spent)[0]:
+                self.status[b] = SolveStatus.NOT_CONVERGED
+                log.info(
+                    "problem %d flagged NOT_CONVERGED at load fraction %.4g: %d Newton iterations spent",
+                    b,
+                    path.lam_done[b],
+                    path.newton_total[b],
+                )
+            path.todo &= ~spent
+            left |= spent
+        return left
+
     # ------------------------------------------------------------------ Newton
     def _stabilize(self, on: np.ndarray) -> None:
         """Switch the increment stabilization springs on or off per problem (energy, gradient, Hessian)."""
@@ -1530,183 +1852,188 @@ class QuasiStaticSolver:
         shift[:, :N, :] = (self._regularization_np + stab)[:, :, None]
         self._diag_shift.assign(shift.reshape(-1, 3))
 
-    def _newton(self, mask: np.ndarray, relag_every: np.ndarray):
-        """Newton iterations on the masked problems at their current loads (``relag_every``: problems whose
-        friction normal forces are re-lagged at every iteration, ``SolverOptions.relag_friction_on_retry``).
+    def _set_damping_shift(self, damping: np.ndarray) -> None:
+        """Diagonal shift <- regularization (and springs) + Levenberg-Marquardt ``damping`` (B,) E h."""
+        shift = self._diag_shift_base + damping[:, None, None] * self._damping_scale
+        self._diag_shift.assign(shift.reshape(-1, 3))
 
-        Returns per problem: success, failure status, iterations, Krylov iterations, final residual."""
+    def _newton_begin(self, run: _NewtonRun, mask: np.ndarray) -> None:
+        """Start the Newton iterations of the masked problems at their current state and loads.
+
+        Friction normal forces are re-lagged at each of the first iterations of an increment (contacts and
+        their friction establish themselves), then frozen so Newton minimizes one smooth potential (vertices
+        at the rim of a contact patch would otherwise toggle the friction law between iterations). A state
+        that converges with frozen lags is accepted only if its own normal forces match the lags."""
+        if not mask.any():
+            return
+        B, D = self.batch_size, self.num_dofs
+        run.working |= mask
+        run.started |= mask
+        run.ok[mask] = False
+        run.status[mask] = SolveStatus.NOT_CONVERGED
+        run.passes[mask] = 0
+        run.iters[mask] = 0
+        run.lin_iters[mask] = 0
+        run.residual[mask] = np.inf
+        run.relag[mask] = True
+        run.relags[mask] = 0
+        run.last_relag[mask] = 0
+        run.stale[mask] = False
+        run.stale_step[mask] = False
+        self._relag_has_residual[mask] = False
+        run.exact[mask] = 0
+        self._exact_hessian.assign(run.exact)
+        if np.any(run.damping[mask]):
+            run.damping[mask] = 0.0
+            self._set_damping_shift(run.damping)
+        if D:
+            run.dof_targets[mask] = np.abs(self._dof_force.numpy()[: B * D].reshape(B, D))[mask]
+
+    def _newton_pass(self, run: _NewtonRun) -> None:
+        """One Newton iteration of every problem in ``run.working``; problems that converge or fail leave it
+        (``run.ok``, ``run.status``)."""
         o = self.options
         B = self.batch_size
-        working = mask.copy()
-        ok = np.zeros(B, dtype=bool)
-        status = np.full(B, SolveStatus.NOT_CONVERGED, dtype=np.int32)
-        iters = np.zeros(B, dtype=int)
-        lin_iters = np.zeros(B, dtype=int)
-        residual = np.full(B, np.inf)
-        dof_targets = np.abs(self._dof_force.numpy()[: B * self.num_dofs].reshape(B, self.num_dofs))
-        atol = 1e-14 * self._youngs_np * self.mesh.diameter**2
-        max_step = o.max_step_fraction * self.mesh.diameter
-        escape = o.escape_fraction * self.mesh.diameter
         sysm = self.system
-        # Friction normal forces are re-lagged at each of the first iterations of an increment (contacts and
-        # their friction establish themselves), then frozen so Newton minimizes one smooth potential (vertices
-        # at the rim of a contact patch would otherwise toggle the friction law between iterations). A state
-        # that converges with frozen lags is accepted only if its own normal forces match the lags.
-        relag = mask.copy()
-        relags = np.zeros(B, dtype=int)
-        last_relag = np.zeros(B, dtype=int)
-        stale = np.zeros(B, dtype=bool)
-        self._relag_has_residual[mask] = False
-        exact = np.zeros(B, dtype=np.int32)
-        damping = np.zeros(B)  # Levenberg-Marquardt factor of the exact Hessian, per problem
-        # chord Newton: the last step came from a stale factorization and the line search cut it back
-        stale_step = np.zeros(B, dtype=bool)
-        self._exact_hessian.zero_()
-        for _ in range((o.max_newton_iterations + 1) * (o.max_friction_relags + 1)):
-            self._relag_friction(relag & working, accelerate=stale if o.friction_relaxation else None)
-            stale = np.zeros(B, dtype=bool)
-            relag = working & ((iters < o.friction_relag_iterations) | relag_every)
+        working = run.working
+        # a safety bound on the passes of one Newton solve (each problem's own budgets end it first)
+        working &= run.passes < (o.max_newton_iterations + 1) * (o.max_friction_relags + 1)
+        if not working.any():
+            return
+        run.passes[working] += 1
+        self.newton_passes += 1
+        self._relag_friction(run.relag & working, accelerate=run.stale if o.friction_relaxation else None)
+        run.stale = np.zeros(B, dtype=bool)
+        run.relag = working & ((run.iters < o.friction_relag_iterations) | run.relag_every)
+        active = self._active_array(working)
+        assembled = working.copy()
+        self._assemble(active)
+        res_arr = self._newton_scales[2]
+        wp.launch(
+            kk.newton_rhs_kernel,
+            dim=(B, self.rows_per_problem),
+            inputs=[sysm.gradient, self._free, active, self.rows_per_problem, sysm.rhs, res_arr],
+            device=self.device,
+        )
+        # force scale, load scale and residual in one read (on the CPU numpy() is a view: copied)
+        fscale, lscale, res = self._newton_scales.numpy().copy()
+        previous = run.residual.copy()
+        run.residual[working] = res[working]
+        scale = np.maximum(np.maximum(fscale, lscale), run.dof_targets.max(axis=1, initial=0.0))
+        tol = o.rtol * scale + run.atol
+        nonfinite = working & ~np.isfinite(res)
+        if nonfinite.any():
+            run.status[nonfinite] = SolveStatus.NONFINITE
+            working &= ~nonfinite
+        conv = working & (res <= tol)
+        # (problems re-lagged at every iteration were re-lagged at this very state: consistent)
+        frozen = conv & (run.iters >= o.friction_relag_iterations) & ~run.relag_every
+        if frozen.any():
+            # lag consistency: the converged state's own friction capacities must equal the lagged ones
+            stale = self._friction_inconsistent(frozen, tol)
+            stale &= run.relags < o.max_friction_relags
+            run.relags[stale] += 1
+            run.relag |= stale
+            # each re-lag starts a new Newton solve of the updated potential, with its own budget
+            run.last_relag[stale] = run.iters[stale]
+            conv &= ~stale
+            run.stale = stale
+        if log.isEnabledFor(logging.DEBUG):
+            b0 = int(np.argmax(working))
+            log.debug("newton it %d problem %d residual %.3e tol %.3e", run.iters[b0], b0, res[b0], tol[b0])
+        if o.stabilization > 0 and conv.any():
+            stab = self._stabilization_force.numpy()
+            self._stabilization_at_convergence[conv] = stab[conv]
+        run.ok |= conv
+        working &= ~conv
+        if not working.any():
+            return
+        # a problem out of Newton iterations since its last re-lag fails this increment (the others go on)
+        working &= (run.iters - run.last_relag) < o.max_newton_iterations
+        if not working.any():
+            return
+        run.iters[working] += 1
+        # rhs of problems that are done is zero: rebuild it for the working set only
+        if not np.array_equal(working, assembled):
             active = self._active_array(working)
-            assembled = working.copy()
-            self._assemble(active)
-            res_arr = self._newton_scales[2]
             wp.launch(
                 kk.newton_rhs_kernel,
                 dim=(B, self.rows_per_problem),
                 inputs=[sysm.gradient, self._free, active, self.rows_per_problem, sysm.rhs, res_arr],
                 device=self.device,
             )
-            # force scale, load scale and residual in one read (on the CPU numpy() is a view: copied)
-            fscale, lscale, res = self._newton_scales.numpy().copy()
-            previous = residual.copy()
-            residual[working] = res[working]
-            scale = np.maximum(np.maximum(fscale, lscale), dof_targets.max(axis=1, initial=0.0))
-            nonfinite = working & ~np.isfinite(res)
-            if nonfinite.any():
-                status[nonfinite] = SolveStatus.NONFINITE
-                working &= ~nonfinite
-            conv = working & (res <= o.rtol * scale + atol)
-            # (problems re-lagged at every iteration were re-lagged at this very state: consistent)
-            frozen = conv & (iters >= o.friction_relag_iterations) & ~relag_every
-            if frozen.any():
-                # lag consistency: the converged state's own friction capacities must equal the lagged ones
-                stale = self._friction_inconsistent(frozen, o.rtol * scale + atol)
-                stale &= relags < o.max_friction_relags
-                relags[stale] += 1
-                relag |= stale
-                # each re-lag starts a new Newton solve of the updated potential, with its own budget
-                last_relag[stale] = iters[stale]
-                conv &= ~stale
-            if log.isEnabledFor(logging.DEBUG):
-                b0 = int(np.argmax(working))
-                log.debug(
-                    "newton it %d problem %d residual %.3e tol %.3e",
-                    iters[b0],
-                    b0,
-                    res[b0],
-                    o.rtol * scale[b0] + atol[b0],
-                )
-            if o.stabilization > 0 and conv.any():
-                stab = self._stabilization_force.numpy()
-                self._stabilization_at_convergence[conv] = stab[conv]
-            ok |= conv
-            working &= ~conv
-            if not working.any():
-                break
-            # a problem out of Newton iterations since its last re-lag fails this increment (the others go on)
-            working &= (iters - last_relag) < o.max_newton_iterations
-            if not working.any():
-                break
-            iters[working] += 1
-            # rhs of problems that are done is zero: rebuild it for the working set only
-            if not np.array_equal(working, assembled):
-                active = self._active_array(working)
-                wp.launch(
-                    kk.newton_rhs_kernel,
-                    dim=(B, self.rows_per_problem),
-                    inputs=[sysm.gradient, self._free, active, self.rows_per_problem, sysm.rhs, res_arr],
-                    device=self.device,
-                )
-            # inexact Newton (Eisenstat-Walker): solve only as accurately as the nonlinear residual warrants
-            tol = o.rtol * scale + atol
-            with np.errstate(divide="ignore", invalid="ignore"):
-                ew = np.where(np.isfinite(previous), 0.9 * (res / previous) ** 2, 0.1)
-                floor = 0.5 * tol / res
-            forcing = np.clip(np.maximum(ew, floor), o.cg_rtol, 0.1)
-            # safeguard: where Newton stagnates, solve exactly (CG resolves soft and runaway modes last)
-            forcing[res > 0.9 * previous] = o.cg_rtol
-            linear_rtol = float(forcing[working].min())
-            refactor = working
-            if self._reuse_factors:
-                # keep a factorization while the residual contracts fast (first step of an increment: its
-                # predecessor's), at most max_factor_reuse further steps and with the damping it was made with
-                slow = np.isfinite(previous) & ~(res <= o.factor_reuse_contraction * previous)
-                worn = self._factor_steps > self._max_factor_reuse
-                refactor = working & (slow | worn | stale_step | (damping != self._factor_damping))
-            n_lin, _ = self._linear_solve(linear_rtol, refactor)
-            fresh = working & (sysm.fresh_factor if self._reuse_factors else True)
-            self._factor_steps[working] += 1
-            self._factor_steps[fresh] = 1
-            self._factor_damping[fresh] = damping[fresh]
-            if self.pressure_surface is not None:
-                n_lin += self._gas_rank_one(working, linear_rtol)
-            lin_iters[working] += n_lin
-            failed, first_trial, alpha = self._line_search(working, active, max_step)
-            # a stale factorization's step that the line search rejects or shortens is no verdict on the
-            # Hessian (no damping, no stall): the next step factors anew (a rejected one from the same state)
-            stale_step = working & ~fresh & ((failed == 1) | (alpha < first_trial))
-            failed[stale_step & (failed == 1)] = 0
-            if log.isEnabledFor(logging.DEBUG):
-                log.debug(
-                    "  step %.3e line search %s",
-                    alpha[int(np.argmax(working))],
-                    failed[working][:4],
-                )
-            nonfinite_step = failed == 2
-            status[nonfinite_step] = SolveStatus.NONFINITE
-            if o.exact_hessian:
-                # trust the exact Hessian after a full step that lowered the residual; when its step fails
-                # or is cut back by the line search (a step shortened to max_step is not), retry from the
-                # unchanged state with Levenberg-Marquardt damping, then with the projected Hessian
-                full = alpha >= first_trial
-                lost = working & fresh & (exact == 1) & ((failed == 1) | ~full)
-                failed[lost] = 0
-                before = damping.copy()
-                damp = lost & (damping < LM_MAX)
-                damping[damp] = np.maximum(10.0 * damping[damp], LM_START)
-                exact[lost & ~damp] = 0
-                damping[lost & ~damp] = 0.0
-                # an accepted full damped step widens the trust region whatever the residual did (a sliding
-                # body's residual stays put while its energy falls; a fixed damping would make it crawl)
-                damping[working & fresh & ~lost & full & (exact == 1)] /= 3.0
-                good = working & ~lost & full & (res < previous)
-                damping[damping < LM_MIN] = 0.0
-                exact[good] = 1
-                self._exact_hessian.assign(exact)
-                if np.any(damping != before):
-                    shift = self._diag_shift_base + damping[:, None, None] * self._damping_scale
-                    self._diag_shift.assign(shift.reshape(-1, 3))
-            # a failed line search this close to the tolerance is round-off: accept the state
-            stalled = failed == 1
-            near = stalled & (residual <= 1e3 * (o.rtol * scale + atol))
-            ok |= near
-            working &= ~(stalled | nonfinite_step)
-            # escape: the object moved too far within one increment
-            drift = self._drift
-            drift.zero_()
-            wp.launch(
-                kk.vertex_drift_kernel,
-                dim=(B, self.mesh.num_vertices),
-                inputs=[self._q, self._q_ref, self.mesh.num_vertices, self.rows_per_problem, drift],
-                device=self.device,
-            )
-            esc = working & (drift.numpy() > escape)
-            status[esc] = SolveStatus.ESCAPED
-            working &= ~esc
-        self._exact_hessian.zero_()
-        if np.any(damping):
-            self._diag_shift.assign(self._diag_shift_base.reshape(-1, 3))
-        return ok, status, iters, lin_iters, residual
+        # inexact Newton (Eisenstat-Walker): solve only as accurately as the nonlinear residual warrants
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ew = np.where(np.isfinite(previous), 0.9 * (res / previous) ** 2, 0.1)
+            floor = 0.5 * tol / res
+        forcing = np.clip(np.maximum(ew, floor), o.cg_rtol, 0.1)
+        # safeguard: where Newton stagnates, solve exactly (CG resolves soft and runaway modes last)
+        forcing[res > 0.9 * previous] = o.cg_rtol
+        linear_rtol = float(forcing[working].min())
+        refactor = working
+        damping = run.damping
+        if self._reuse_factors:
+            # keep a factorization while the residual contracts fast (first step of an increment: its
+            # predecessor's), at most max_factor_reuse further steps and with the damping it was made with
+            slow = np.isfinite(previous) & ~(res <= o.factor_reuse_contraction * previous)
+            worn = self._factor_steps > self._max_factor_reuse
+            refactor = working & (slow | worn | run.stale_step | (damping != self._factor_damping))
+        n_lin, _ = self._linear_solve(linear_rtol, refactor)
+        fresh = working & (sysm.fresh_factor if self._reuse_factors else True)
+        self._factor_steps[working] += 1
+        self._factor_steps[fresh] = 1
+        self._factor_damping[fresh] = damping[fresh]
+        if self.pressure_surface is not None:
+            n_lin += self._gas_rank_one(working, linear_rtol)
+        run.lin_iters[working] += n_lin
+        failed, first_trial, alpha = self._line_search(working, active, run.max_step)
+        # a stale factorization's step that the line search rejects or shortens is no verdict on the
+        # Hessian (no damping, no stall): the next step factors anew (a rejected one from the same state)
+        run.stale_step = working & ~fresh & ((failed == 1) | (alpha < first_trial))
+        failed[run.stale_step & (failed == 1)] = 0
+        if log.isEnabledFor(logging.DEBUG):
+            log.debug("  step %.3e line search %s", alpha[int(np.argmax(working))], failed[working][:4])
+        nonfinite_step = failed == 2
+        run.status[nonfinite_step] = SolveStatus.NONFINITE
+        if o.exact_hessian:
+            # trust the exact Hessian after a full step that lowered the residual; when its step fails
+            # or is cut back by the line search (a step shortened to max_step is not), retry from the
+            # unchanged state with Levenberg-Marquardt damping, then with the projected Hessian
+            exact = run.exact
+            full = alpha >= first_trial
+            lost = working & fresh & (exact == 1) & ((failed == 1) | ~full)
+            failed[lost] = 0
+            before = damping.copy()
+            damp = lost & (damping < LM_MAX)
+            damping[damp] = np.maximum(10.0 * damping[damp], LM_START)
+            exact[lost & ~damp] = 0
+            damping[lost & ~damp] = 0.0
+            # an accepted full damped step widens the trust region whatever the residual did (a sliding
+            # body's residual stays put while its energy falls; a fixed damping would make it crawl)
+            damping[working & fresh & ~lost & full & (exact == 1)] /= 3.0
+            good = working & ~lost & full & (res < previous)
+            damping[damping < LM_MIN] = 0.0
+            exact[good] = 1
+            self._exact_hessian.assign(exact)
+            if np.any(damping != before):
+                self._set_damping_shift(damping)
+        # a failed line search this close to the tolerance is round-off: accept the state
+        stalled = failed == 1
+        near = stalled & (run.residual <= 1e3 * tol)
+        run.ok |= near
+        working &= ~(stalled | nonfinite_step)
+        # escape: the object moved too far within one increment
+        drift = self._drift
+        drift.zero_()
+        wp.launch(
+            kk.vertex_drift_kernel,
+            dim=(B, self.mesh.num_vertices),
+            inputs=[self._q, self._q_ref, self.mesh.num_vertices, self.rows_per_problem, drift],
+            device=self.device,
+        )
+        esc = working & (drift.numpy() > run.escape)
+        run.status[esc] = SolveStatus.ESCAPED
+        working &= ~esc
 
     def _linear_solve(self, rtol: float, refactor: np.ndarray | None = None) -> tuple[int, float]:
         """H increment = rhs with the configured linear solver; returns (iterations, residual).
@@ -1812,29 +2139,35 @@ class QuasiStaticSolver:
         energy = self._energy_at(self._q, self._positions, self._travel, self._active_array(mask))
         inverted = mask & ~np.isfinite(energy)
         if inverted.any():
-            self._predict(change, mask & ~inverted)
+            self._predict(change, mask, extrapolate=mask & ~inverted)
             self._apply_increment(lam, start, end, mask)
 
-    def _predict(self, change: np.ndarray, mask: np.ndarray):
-        """Initial guess of an increment: q = q_ref + r * (last converged increment of q), where r is the
-        size of this load change relative to the last one (0 unless both changes are parallel)."""
+    def _predict(self, change: np.ndarray, mask: np.ndarray, extrapolate: np.ndarray | None = None):
+        """Initial guess of the masked problems' increment: q = q_ref + r * (last converged increment of q),
+        where r is the size of this load change relative to the last one (0 unless both changes are
+        parallel, and 0 outside ``extrapolate``, default ``mask``). Other problems' states are untouched."""
         ratio = np.zeros(self.batch_size)
-        if self._last_change.shape == change.shape:
-            last = self._last_change
-            dot = np.einsum("bi,bi->b", change, last)
-            norms = np.linalg.norm(change, axis=1) * np.linalg.norm(last, axis=1)
-            parallel = mask & (norms > 0) & (dot > 0.999 * norms)
-            ratio[parallel] = np.minimum(2.0, dot[parallel] / np.einsum("bi,bi->b", last, last)[parallel])
+        if extrapolate is None:
+            extrapolate = mask
+        e = np.nonzero(extrapolate)[0]
+        if self._last_change.shape == change.shape and e.size:
+            now, last = change[e], self._last_change[e]
+            dot = np.einsum("bi,bi->b", now, last)
+            norms = np.linalg.norm(now, axis=1) * np.linalg.norm(last, axis=1)
+            parallel = (norms > 0) & (dot > 0.999 * norms)
+            ratio[e[parallel]] = np.minimum(
+                2.0, dot[parallel] / np.einsum("bi,bi->b", last[parallel], last[parallel])
+            )
         self._step.assign(ratio)
         wp.launch(
-            kk.trial_state_kernel,
+            kk.predicted_state_kernel,
             dim=(self.batch_size, self.rows_per_problem),
             inputs=[
                 self._q_ref,
                 self._last_increment,
                 self._step,
+                self._active_array(mask),
                 self.rows_per_problem,
-                self.batch_size,
                 self._q,
             ],
             device=self.device,
@@ -1882,9 +2215,12 @@ class QuasiStaticSolver:
         self._unpack(self._q, self._positions, self._travel)
 
     # ------------------------------------------------------------------ outputs
-    def _results(self, load_fraction, newton, linear, residual) -> Equilibrium:
+    def _results(self, load_fraction, newton, linear, residual, rows=None) -> Equilibrium:
+        """The equilibria of all problems, or of the problems ``rows`` (integer indices) only: the device
+        computes every problem's fields, the host copies and post-processes only those rows."""
         B, N, M = self.batch_size, self.mesh.num_vertices, self.mesh.num_tets
         K, S = self.num_bodies, self.num_surface
+        rows = np.arange(B) if rows is None else np.asarray(rows)
         dev = self.device
         tet_stress = wp.zeros(B * M, dtype=wp.mat33d, device=dev)
         energy = wp.zeros(B, dtype=wp.float64, device=dev)
@@ -1917,33 +2253,41 @@ class QuasiStaticSolver:
         vm = wp.zeros(B * N, dtype=wp.float64, device=dev)
         wp.launch(ek.von_mises_kernel, dim=B * N, inputs=[vstress, vm], device=dev)
 
-        # reaction forces on fixed components: the gradient of Pi there (before constraints)
-        active = self._active_array(np.ones(B, dtype=bool))
-        self._assemble(active)
-        grad = self.system.gradient.numpy().reshape(B, self.rows_per_problem, 3)
-        reaction = np.where(self.fixed_mask[None], grad[:, :N], 0.0)
+        # reaction forces on fixed components: the gradient of Pi there (before constraints); the assembly
+        # also gives the cavity volume's gradient (the gas force), so without either it is skipped
+        reaction = np.zeros((len(rows), N, 3))
+        if self.fixed_mask.any() or self.pressure_surface is not None:
+            active = self._active_array(np.ones(B, dtype=bool))
+            self._assemble(active)
+            grad = self.system.gradient.numpy().reshape(B, self.rows_per_problem, 3)[rows]
+            reaction = np.where(self.fixed_mask[None], grad[:, :N], 0.0)
         gas = {}
         if self.pressure_surface is not None:
             vol = self.rest_cavity_volume + self._cavity_volume_change(self._positions)
             p = pk.gas_pressure(self._gas_law, vol, self.pressure_surface.external_volume)
-            dv = self._volume_gradient.numpy().reshape(B, self.rows_per_problem, 3)[:, :N]
-            gas = {"gauge_pressure": p, "cavity_volume": vol, "pressure_force": p[:, None, None] * dv}
+            dv = self._volume_gradient.numpy().reshape(B, self.rows_per_problem, 3)[rows, :N]
+            gas = {
+                "gauge_pressure": p[rows],
+                "cavity_volume": vol[rows],
+                "pressure_force": p[rows, None, None] * dv,
+            }
 
-        q = self._q.numpy().reshape(B, self.rows_per_problem, 3)
+        q = self._q.numpy().reshape(B, self.rows_per_problem, 3)[rows]
         travel = {n: q[:, N + d, 0].copy() for d, n in enumerate(self.dof_names)}
         body_force, body_torque, cn, cf, cs = {}, {}, {}, {}, {}
-        dof_force = {n: np.zeros(B) for n in self.dof_names}
-        max_pen = np.zeros(B)
+        dof_force = {n: np.zeros(len(rows)) for n in self.dof_names}
+        max_pen = np.zeros(len(rows))
         if K:
             self._contact_state(self._positions, self._travel)
-            fn = self._c_force.numpy().reshape(B, S, K)
-            nrm = self._c_normal.numpy().reshape(B, S, K, 3)
-            ff = self._c_friction.numpy().reshape(B, S, K, 3)
-            st = self._c_stick.numpy().reshape(B, S, K).astype(bool)
-            gap = self._c_gap.numpy().reshape(B, S, K)
+            fn = self._c_force.numpy().reshape(B, S, K)[rows]
+            nrm = self._c_normal.numpy().reshape(B, S, K, 3)[rows]
+            ff = self._c_friction.numpy().reshape(B, S, K, 3)[rows]
+            st = self._c_stick.numpy().reshape(B, S, K)[rows].astype(bool)
+            gap = self._c_gap.numpy().reshape(B, S, K)[rows]
             max_pen = np.maximum(0.0, -gap.min(axis=(1, 2)))
-            pos = self._positions.numpy().reshape(B, N, 3)[:, self.mesh.surface_vertices]
+            pos = self._positions.numpy().reshape(B, N, 3)[rows][:, self.mesh.surface_vertices]
             rot, origin, axes = self._world_frames()
+            origin, axes = origin[rows], axes[rows]
             for k, body in enumerate(self.bodies):
                 on_vertex = fn[:, :, k, None] * nrm[:, :, k] + ff[:, :, k]  # force of the body on the object
                 f_body = -on_vertex.sum(axis=1)
@@ -1957,21 +2301,21 @@ class QuasiStaticSolver:
                 if d >= 0:
                     # the body pushes the object along its axis: -(force on the body) . axis
                     dof_force[self.dof_names[d]] += -np.einsum("bi,bi->b", f_body, axes[:, k])
-        ts = tet_stress.numpy().reshape(B, M, 3, 3) if self.options.record_tet_stress else None
+        ts = tet_stress.numpy().reshape(B, M, 3, 3)[rows] if self.options.record_tet_stress else None
         return Equilibrium(
             mesh=self.mesh,
-            status=self.status.copy(),
-            load_fraction=load_fraction.copy(),
-            newton_iterations=newton.copy(),
-            linear_iterations=linear.copy(),
-            residual=residual.copy(),
+            status=self.status[rows],
+            load_fraction=load_fraction[rows],
+            newton_iterations=newton[rows],
+            linear_iterations=linear[rows],
+            residual=residual[rows],
             displacement=q[:, :N].copy(),
             travel=travel,
             dof_force=dof_force,
-            vertex_stress=vstress.numpy().reshape(B, N, 3, 3),
-            von_mises=vm.numpy().reshape(B, N),
-            strain_energy=energy.numpy().copy(),
-            inverted_tets=inverted.numpy().copy(),
+            vertex_stress=vstress.numpy().reshape(B, N, 3, 3)[rows],
+            von_mises=vm.numpy().reshape(B, N)[rows],
+            strain_energy=energy.numpy()[rows],
+            inverted_tets=inverted.numpy()[rows],
             body_force=body_force,
             body_torque=body_torque,
             contact_normal_force=cn,
@@ -1980,6 +2324,6 @@ class QuasiStaticSolver:
             max_penetration=max_pen,
             reaction_force=reaction,
             tet_stress=ts,
-            stabilization_force=self._stabilization_at_convergence.copy(),
+            stabilization_force=self._stabilization_at_convergence[rows],
             **gas,
         )

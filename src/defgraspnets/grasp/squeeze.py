@@ -213,24 +213,37 @@ def squeeze_ramp(
     steps: int = 50,
     progress: bool = False,
     on_step: Callable[[int, float, fem.Equilibrium], None] | None = None,
+    barrier: bool = False,
 ) -> list[fem.Equilibrium]:
     """Ramp the total grasp force 0 -> ``max_force`` [N] in ``steps`` steps; one equilibrium per step.
 
-    ``on_step(step_index, force, equilibrium)`` is called after every step (e.g. to write fields).
-    Problems that fail (no equilibrium) are flagged in ``status`` and stay flagged for later steps.
+    ``on_step(step_index, force, equilibrium)`` is called for every step, in order, once all grasps have
+    reached it (e.g. to write fields). Problems that fail (no equilibrium) are flagged in ``status`` and stay
+    flagged for later steps. Each grasp goes on to its next force step as soon as it has reached the current
+    one (:meth:`fem.QuasiStaticSolver.solve_sequence`): the same equilibria as ``barrier=True`` (one
+    :meth:`~fem.QuasiStaticSolver.solve` per step, the whole batch waiting at every step for its slowest
+    grasp), without the wait.
     """
     if not np.isfinite(max_force) or max_force <= 0:
         raise ValueError(f"max_force must be a positive force in newtons, got {max_force!r}")
+    forces = [max_force * s / steps for s in range(1, steps + 1)]
+    if not barrier:
+
+        def reached(k: int, eq: fem.Equilibrium) -> None:
+            if on_step is not None:
+                on_step(k, forces[k], eq)
+
+        levels = [{GRIP_DOF: force} for force in forces]
+        return solver.solve_sequence(levels, on_level=reached, progress=progress)
     out = []
-    it = range(1, steps + 1)
+    it = range(steps)
     if progress:
         from tqdm.auto import tqdm
 
         it = tqdm(it, desc=f"squeeze 0-{max_force:g} N", unit="step", leave=False)
-    for s in it:
-        force = max_force * s / steps
-        eq = solver.solve(targets={GRIP_DOF: force})
+    for k in it:
+        eq = solver.solve(targets={GRIP_DOF: forces[k]})
         if on_step is not None:
-            on_step(s - 1, force, eq)
+            on_step(k, forces[k], eq)
         out.append(eq)
     return out

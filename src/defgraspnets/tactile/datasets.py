@@ -346,8 +346,9 @@ def _scaled_simulator(sim: MembraneSimulator, scale: float) -> MembraneSimulator
     )
 
 
-def _simulate(sim: MembraneSimulator, batch: list[TactilePath], max_step: float):
-    """Simulate one batch (one kind, one radius) with each path's friction offset."""
+def _simulate(sim: MembraneSimulator, batch: list[TactilePath], max_step: float, barrier: bool = False):
+    """Simulate one batch (one kind, one radius) with each path's friction offset (``barrier``: poke paths
+    wait for each other at every load step, :meth:`MembraneSimulator.indent_series`)."""
     items = [p.indentation for p in batch]
     offsets = np.array([p.friction_offset for p in batch])
     base = _base_friction(sim)
@@ -362,7 +363,7 @@ def _simulate(sim: MembraneSimulator, batch: list[TactilePath], max_step: float)
         sim.solver.set_friction("indenter", mu)
     try:
         if batch[0].motions is None:
-            return sim.indent_series(items, batch[0].levels, render=True, max_step=max_step)
+            return sim.indent_series(items, batch[0].levels, render=True, max_step=max_step, barrier=barrier)
         motions = np.stack([p.motions for p in batch], axis=1)  # (L, n, 4, 4)
         return sim.press_and_move(items, motions, render=True, max_step=max_step)
     finally:
@@ -377,6 +378,7 @@ def generate_tactile_shard(
     max_step: float = 0.002,
     progress: bool = True,
     _simulators: dict | None = None,
+    barrier: bool = False,
 ) -> dict:
     """Simulate ``paths`` (skipping those whose samples the writer already holds) and append them.
 
@@ -420,11 +422,11 @@ def generate_tactile_shard(
         )
     for batch in batches:
         try:
-            readings = _simulate(simulator(batch[0].radius_scale), batch, max_step)
+            readings = _simulate(simulator(batch[0].radius_scale), batch, max_step, barrier)
         except IndenterError as error:
             if len(batch) > 1:  # some path leaves the workspace: simulate them one at a time
                 for p in batch:
-                    one = generate_tactile_shard(sim, [p], writer, max_step, False, sims)
+                    one = generate_tactile_shard(sim, [p], writer, max_step, False, sims, barrier)
                     counts["samples"] += one["samples"]
                     counts["failed"] += one["failed"]
                 if bar is not None:
@@ -551,6 +553,7 @@ def generate_tactile_dataset(
     repeats: int = 1,
     perturbation: ForearmPerturbation | Mapping | None = None,
     solver_options=None,
+    barrier: bool = False,
 ) -> dict:
     """Generate (or resume) one shard of the ``"poke"`` or ``"forearm"`` dataset of thesis §3.3.
 
@@ -564,6 +567,8 @@ def generate_tactile_dataset(
         stride, limit: which paths of the grid (:func:`select_paths`; 1, None = the whole grid).
         shard_index, shard_count: this shard's share of those paths (:func:`select_paths`).
         max_step: largest indenter motion per load step [m].
+        barrier: the poke paths of a batch wait for each other at every load step (default: each goes on
+            as soon as it reached the step; the same readings, :meth:`MembraneSimulator.indent_series`).
         repeats: passes over the forearm grid (thesis: 5, the original and 4 repeats); repeats 1, 2, ...
             re-place the forearm by ``perturbation`` (:class:`ForearmPerturbation` or its config
             mapping; None = its defaults). Poking has no repeats (``repeats`` must be 1).
@@ -624,7 +629,7 @@ def generate_tactile_dataset(
         config_yaml=config_text,
         store_points=store_points,
     )
-    counts = generate_tactile_shard(sim, paths, writer, max_step=max_step, progress=progress)
+    counts = generate_tactile_shard(sim, paths, writer, max_step=max_step, progress=progress, barrier=barrier)
     writer.finalize()
     counts.update(path=str(out_path), seconds=time.perf_counter() - t0, solver_options=sim.solver.options)
     return counts
@@ -664,6 +669,7 @@ def generate_tactile_from_config(cfg: Mapping, out_path=None, config_text: str =
         shard_index=cfg["shard_index"],
         shard_count=cfg["shard_count"],
         max_step=cfg["max_step"],
+        barrier=cfg["barrier"],
         intrinsics=PICO_FLEXX.scaled(cfg["camera_scale"]),
         store_points=cfg["store_points"],
         config_text=config_text,

@@ -451,9 +451,15 @@ class MembraneSimulator:
             self._flag_lost_contact(eq, depth > 0)
         return eq
 
-    def _flag_lost_contact(self, eq, pressing: np.ndarray) -> None:
+    @staticmethod
+    def _lost_contact(eq, pressing: np.ndarray) -> np.ndarray:
+        """Problems of ``eq`` whose pressing indenter touches nothing at equilibrium: it passed through the
+        shell between surface vertices (the mesh is too coarse for this indenter)."""
         touching = eq.contact_normal_force["indenter"].sum(axis=1) > 0
-        lost = pressing & eq.converged & ~touching
+        return pressing & eq.converged & ~touching
+
+    def _flag_lost_contact(self, eq, pressing: np.ndarray) -> None:
+        lost = self._lost_contact(eq, pressing)
         for b in np.nonzero(lost)[0]:
             self.solver.status[b] = fem.SolveStatus.ESCAPED
             eq.status[b] = fem.SolveStatus.ESCAPED
@@ -466,7 +472,12 @@ class MembraneSimulator:
         return self.indent_series(indentations, (1.0,), render=render, max_step=max_step)[0]
 
     def indent_series(
-        self, indentations: list[Indentation], levels, render: bool = True, max_step: float = 0.002
+        self,
+        indentations: list[Indentation],
+        levels,
+        render: bool = True,
+        max_step: float = 0.002,
+        barrier: bool = False,
     ) -> list[list[TactileReading]]:
         """Indent the inflated membrane and read the sensor at several depths along each path.
 
@@ -474,7 +485,10 @@ class MembraneSimulator:
         along its direction; readings are taken at the fractions ``levels`` (increasing, in (0, 1]) of
         its ``depth``, each load step moving the indenter at most ``max_step`` [m] (much less than the
         shell's thickness, so the indenter cannot jump through it). Afterwards the indenters are
-        withdrawn and the next call starts from the inflated membrane again.
+        withdrawn and the next call starts from the inflated membrane again. Each problem goes on to its
+        next load step as soon as it has reached the current one
+        (:meth:`fem.QuasiStaticSolver.solve_sequence`); ``barrier=True`` solves every load step for the
+        whole batch before the next (the same readings, the batch waiting at each step for its slowest path).
 
         Returns:
             readings[level][item]. A problem that fails (no equilibrium, or the indenter lost contact
@@ -493,18 +507,44 @@ class MembraneSimulator:
         items, frames, rotations = self._prepare(indentations)
         final = np.zeros(self.batch_size)
         final[: len(items)] = [item.depth for item in items]
+        pressing = final > 0
         self.solver.set_body_pose("indenter", frames)
-        out, pushed = [], np.zeros(self.batch_size)
+        if barrier:
+            out, pushed = [], np.zeros(self.batch_size)
+            try:
+                for level in levels:
+                    t_start = time.perf_counter()
+                    eq = self._push(level * final, pushed, max_step)
+                    pushed = level * final
+                    elapsed = time.perf_counter() - t_start
+                    out.append(self._readings(eq, pushed, frames, rotations, elapsed, len(items), render))
+            finally:
+                self._withdraw()
+            return out
+        # the load steps of every reading level (as _push), solved without a barrier between them: each
+        # problem goes on to its next step as soon as it has reached the current one
+        steps, reading_steps, pushed = [], [], np.zeros(self.batch_size)
+        for level in levels:
+            depth = level * final
+            n = max(1, int(np.ceil(np.max(np.abs(depth - pushed)) / max_step - 1e-9)))
+            steps += [{"indenter": pushed + (depth - pushed) * k / n} for k in range(1, n + 1)]
+            reading_steps.append(len(steps) - 1)
+            pushed = depth
+        out, clock = [], [time.perf_counter()]
+
+        def read(step: int, eq) -> None:
+            if step in reading_steps:
+                depth = levels[reading_steps.index(step)] * final
+                now = time.perf_counter()
+                out.append(self._readings(eq, depth, frames, rotations, now - clock[0], len(items), render))
+                clock[0] = now
+
+        def lost_contact(_steps, part, rows) -> np.ndarray:
+            lost = self._lost_contact(part, pressing[rows])
+            return np.where(lost, fem.SolveStatus.ESCAPED, fem.SolveStatus.CONVERGED)
+
         try:
-            for level in levels:
-                t_start = time.perf_counter()
-                eq = self._push(level * final, pushed, max_step)
-                pushed = level * final
-                out.append(
-                    self._readings(
-                        eq, pushed, frames, rotations, time.perf_counter() - t_start, len(items), render
-                    )
-                )
+            self.solver.solve_sequence(steps, on_level=read, check=lost_contact)
         finally:
             self._withdraw()
         return out
