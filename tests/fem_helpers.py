@@ -40,6 +40,38 @@ def box_pad(size=(0.02, 0.02, 0.01)):
     return np.asarray(m.vertices), np.asarray(m.faces)
 
 
+def pad_squeeze_solver(offsets, **options):
+    """Two Franka-like pads squeeze a 20 x 15 x 25 mm box (E = 100 kPa) with friction 0.7, force-controlled
+    along the shared dof "grip"; one problem per entry of ``offsets`` [m], where the pads grip along x
+    (off-centre grasps turn the object). ``options``: SolverOptions fields; CPU."""
+    from defgraspnets import fem
+
+    offsets = np.asarray(offsets, dtype=float)
+    B = len(offsets)
+    mesh = fem.TetMesh.box(size=(0.02, 0.015, 0.025), divisions=(4, 3, 5), origin=(-0.01, -0.0075, -0.0125))
+    v, f = box_pad((0.012, 0.008, 0.012))
+    bodies = [
+        fem.RigidBody(
+            name, fem.TriangleMesh(v, f), control=fem.Control.force((0, -s, 0), dof="grip"), friction=0.7
+        )
+        for name, s in (("left", 1), ("right", -1))
+    ]
+    solver = fem.QuasiStaticSolver(
+        mesh,
+        bodies,
+        fem.Material(1e5, 0.3, 1000.0),
+        batch_size=B,
+        device="cpu",
+        options=fem.SolverOptions(**options),
+    )
+    for name, s in (("left", 1), ("right", -1)):
+        T = np.tile(np.eye(4), (B, 1, 1))
+        T[:, 1, 3] = s * (0.0075 + 0.004)
+        T[:, 0, 3] = offsets
+        solver.set_body_pose(name, T)
+    return solver
+
+
 def gmsh_tet_mesh(build, size_field: str, name: str):
     """Tet mesh from a gmsh OCC geometry built by ``build(occ)`` with a MathEval size field [m]."""
     import gmsh

@@ -8,33 +8,17 @@ from defgraspnets import fem
 
 
 def _squeeze(line_search_trials: int, stabilization: float = 0.0):
-    """Two Franka-like pads squeeze a box off-centre with friction (force-controlled travel, so the
-    external work has a dof term) under gravity (nodal dead loads): the object turns while it is gripped."""
-    from fem_helpers import box_pad
+    """Two Franka-like pads squeeze a box, one grasp centred and one off-centre, with friction
+    (force-controlled travel, so the external work has a dof term) under gravity (nodal dead loads): the
+    object turns while it is gripped."""
+    from fem_helpers import pad_squeeze_solver
 
-    mesh = fem.TetMesh.box(size=(0.02, 0.015, 0.025), divisions=(4, 3, 5), origin=(-0.01, -0.0075, -0.0125))
-    v, f = box_pad((0.012, 0.008, 0.012))
-    bodies = [
-        fem.RigidBody(
-            name, fem.TriangleMesh(v, f), control=fem.Control.force((0, -s, 0), dof="grip"), friction=0.7
-        )
-        for name, s in (("left", 1), ("right", -1))
-    ]
-    solver = fem.QuasiStaticSolver(
-        mesh,
-        bodies,
-        fem.Material(1e5, 0.3, 1000.0),
-        batch_size=2,
-        device="cpu",
-        options=fem.SolverOptions(
-            linear_solver="dense", line_search_trials=line_search_trials, stabilization=stabilization
-        ),
+    solver = pad_squeeze_solver(
+        [0.0, 0.002],
+        linear_solver="dense",
+        line_search_trials=line_search_trials,
+        stabilization=stabilization,
     )
-    for name, s in (("left", 1), ("right", -1)):
-        T = np.tile(np.eye(4), (2, 1, 1))
-        T[:, 1, 3] = s * (0.0075 + 0.004)
-        T[1, 0, 3] = 0.002
-        solver.set_body_pose(name, T)
     gravity = fem.BodyLoad(gravity=(0.0, 0.0, -9.81))
     return solver.ramp(4, targets={"grip": np.array([1.0, 2.0])}, body_load=gravity)
 

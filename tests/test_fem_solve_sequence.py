@@ -13,30 +13,9 @@ FORCES = np.array([1.0, 2.0, 3.0, 1.5, 2.5])  # N: grip force at the last level
 def _solver(linear_solver: str, **options) -> fem.QuasiStaticSolver:
     """Two Franka-like pads squeeze a box off-centre with friction under gravity, five grasps at once:
     the off-centre grasps turn the object and take more Newton iterations per level than the centred one."""
-    from fem_helpers import box_pad
+    from fem_helpers import pad_squeeze_solver
 
-    B = len(OFFSETS)
-    mesh = fem.TetMesh.box(size=(0.02, 0.015, 0.025), divisions=(4, 3, 5), origin=(-0.01, -0.0075, -0.0125))
-    v, f = box_pad((0.012, 0.008, 0.012))
-    bodies = [
-        fem.RigidBody(
-            name, fem.TriangleMesh(v, f), control=fem.Control.force((0, -s, 0), dof="grip"), friction=0.7
-        )
-        for name, s in (("left", 1), ("right", -1))
-    ]
-    solver = fem.QuasiStaticSolver(
-        mesh,
-        bodies,
-        fem.Material(1e5, 0.3, 1000.0),
-        batch_size=B,
-        device="cpu",
-        options=fem.SolverOptions(linear_solver=linear_solver, **options),
-    )
-    for name, s in (("left", 1), ("right", -1)):
-        T = np.tile(np.eye(4), (B, 1, 1))
-        T[:, 1, 3] = s * (0.0075 + 0.004)
-        T[:, 0, 3] = OFFSETS
-        solver.set_body_pose(name, T)
+    solver = pad_squeeze_solver(OFFSETS, linear_solver=linear_solver, **options)
     # gripped first (under gravity the object would fall from the open pads)
     solver.solve(targets={"grip": 0.2 * FORCES}, body_load=fem.BodyLoad(gravity=(0.0, 0.0, -9.81)))
     return solver
