@@ -28,8 +28,8 @@ def test_batched_trial_steps_reach_the_same_states_with_the_same_iterations(stab
     cuts = []  # accepted / first step length of every line search
     search = fem.QuasiStaticSolver._line_search
 
-    def recorded(self, working, active, max_step):
-        result, first_trial, alpha = search(self, working, active, max_step)
+    def recorded(self, working, max_step):
+        result, first_trial, alpha = search(self, working, max_step)
         cuts.extend(alpha[working] / first_trial[working])
         return result, first_trial, alpha
 

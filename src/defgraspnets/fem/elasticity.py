@@ -356,22 +356,25 @@ def tet_stress_kernel(
     lam: wp.array(dtype=wp.float64),
     model: wp.array(dtype=wp.int32),
     num_vertices: int,
+    problems: wp.array(dtype=wp.int32),
     stress: wp.array(dtype=wp.mat33d),
     energy: wp.array(dtype=wp.float64),
     inverted: wp.array(dtype=wp.int32),
 ):
-    """Per (problem, tet): Cauchy stress, strain energy V_e Psi (summed per problem), inverted flag."""
-    b, e = wp.tid()
+    """Per (listed problem i, tet): Cauchy stress, strain energy V_e Psi (summed per problem), inverted
+    flag, of problem b = problems[i] (outputs indexed by i: only the listed problems are computed)."""
+    i, e = wp.tid()
+    b = problems[i]
     o = b * num_vertices
     F = tet_deformation_gradient(positions, tets, o, e, rest_inverse[e])
     U, s, V = principal_stretches(F)
     j = s[0] * s[1] * s[2]
     P = U * wp.diag(principal_stress(model[b], s, mu[b], lam[b])) * wp.transpose(V)
     sig = P * wp.transpose(F) / j
-    stress[b * tets.shape[0] + e] = f64(0.5) * (sig + wp.transpose(sig))
-    wp.atomic_add(energy, b, rest_volume[e] * energy_density(model[b], s, mu[b], lam[b]))
+    stress[i * tets.shape[0] + e] = f64(0.5) * (sig + wp.transpose(sig))
+    wp.atomic_add(energy, i, rest_volume[e] * energy_density(model[b], s, mu[b], lam[b]))
     if j <= f64(0.0):
-        wp.atomic_add(inverted, b, 1)
+        wp.atomic_add(inverted, i, 1)
 
 
 @wp.kernel

@@ -1986,7 +1986,7 @@ class QuasiStaticSolver:
         if self.pressure_surface is not None:
             n_lin += self._gas_rank_one(working, linear_rtol)
         run.lin_iters[working] += n_lin
-        failed, first_trial, alpha = self._line_search(working, active, run.max_step)
+        failed, first_trial, alpha = self._line_search(working, run.max_step)
         # a stale factorization's step that the line search rejects or shortens is no verdict on the
         # Hessian (no damping, no stall): the next step factors anew (a rejected one from the same state)
         run.stale_step = working & ~fresh & ((failed == 1) | (alpha < first_trial))
@@ -2052,7 +2052,7 @@ class QuasiStaticSolver:
             return sysm.solve_dense_banded(refactor, o.banded_min_problems)
         return sysm.solve_direct(refactor)
 
-    def _line_search(self, working: np.ndarray, active, max_step: float):
+    def _line_search(self, working: np.ndarray, max_step: float):
         """Armijo backtracking on Pi per problem; updates the state. Returns per problem 0 (accepted) or
         1 (no acceptable step), the first step length tried (1, or less where the step is shortened to
         ``max_step``) and the accepted step length (0 where none).
@@ -2083,7 +2083,7 @@ class QuasiStaticSolver:
         accepted = np.zeros(B, dtype=bool)
         e0 = None
         if T == 1:
-            e0 = self._energy_at(self._q, self._positions, self._travel, active)
+            e0 = self._energy_at(self._q, self._positions, self._travel, self._active_array(searching))
         halvings = 0  # step lengths tried so far (alpha = first_trial / 2^halvings)
         while searching.any() and halvings < 60:
             # slot 0 of the first pass is the current state (step 0) when several trials share a pass
@@ -2101,8 +2101,14 @@ class QuasiStaticSolver:
                 device=self.device,
             )
             self._unpack(self._q_trial, self._positions_trial, self._travel_trial, states)
+            # only the problems still searching (the others' energies are not needed: on the CPU every
+            # problem's energy costs its own kernel time)
             energies = self._energies_at(
-                self._q_trial, self._positions_trial, self._travel_trial, active, first + n
+                self._q_trial,
+                self._positions_trial,
+                self._travel_trial,
+                self._active_array(searching),
+                first + n,
             )
             if e0 is None:
                 e0 = energies[0]
@@ -2216,18 +2222,19 @@ class QuasiStaticSolver:
 
     # ------------------------------------------------------------------ outputs
     def _results(self, load_fraction, newton, linear, residual, rows=None) -> Equilibrium:
-        """The equilibria of all problems, or of the problems ``rows`` (integer indices) only: the device
-        computes every problem's fields, the host copies and post-processes only those rows."""
+        """The equilibria of all problems, or of the problems ``rows`` (integer indices) only: their
+        stresses are computed and their fields copied and post-processed."""
         B, N, M = self.batch_size, self.mesh.num_vertices, self.mesh.num_tets
         K, S = self.num_bodies, self.num_surface
         rows = np.arange(B) if rows is None else np.asarray(rows)
+        n = len(rows)
         dev = self.device
-        tet_stress = wp.zeros(B * M, dtype=wp.mat33d, device=dev)
-        energy = wp.zeros(B, dtype=wp.float64, device=dev)
-        inverted = wp.zeros(B, dtype=wp.int32, device=dev)
+        tet_stress = wp.zeros(max(n * M, 1), dtype=wp.mat33d, device=dev)
+        energy = wp.zeros(max(n, 1), dtype=wp.float64, device=dev)
+        inverted = wp.zeros(max(n, 1), dtype=wp.int32, device=dev)
         wp.launch(
             ek.tet_stress_kernel,
-            dim=(B, M),
+            dim=(n, M),
             inputs=[
                 self._positions,
                 self._tets,
@@ -2237,21 +2244,22 @@ class QuasiStaticSolver:
                 self._lam,
                 self._model,
                 N,
+                wp.array(rows.astype(np.int32), dtype=wp.int32, device=dev),
                 tet_stress,
                 energy,
                 inverted,
             ],
             device=dev,
         )
-        vstress = wp.zeros(B * N, dtype=wp.mat33d, device=dev)
+        vstress = wp.zeros(max(n * N, 1), dtype=wp.mat33d, device=dev)
         wp.launch(
             ek.vertex_von_mises_kernel,
-            dim=(B, M),
+            dim=(n, M),
             inputs=[tet_stress, self._tets, self._volume, self._vertex_weight, N, vstress],
             device=dev,
         )
-        vm = wp.zeros(B * N, dtype=wp.float64, device=dev)
-        wp.launch(ek.von_mises_kernel, dim=B * N, inputs=[vstress, vm], device=dev)
+        vm = wp.zeros(max(n * N, 1), dtype=wp.float64, device=dev)
+        wp.launch(ek.von_mises_kernel, dim=n * N, inputs=[vstress, vm], device=dev)
 
         # reaction forces on fixed components: the gradient of Pi there (before constraints); the assembly
         # also gives the cavity volume's gradient (the gas force), so without either it is skipped
@@ -2301,7 +2309,9 @@ class QuasiStaticSolver:
                 if d >= 0:
                     # the body pushes the object along its axis: -(force on the body) . axis
                     dof_force[self.dof_names[d]] += -np.einsum("bi,bi->b", f_body, axes[:, k])
-        ts = tet_stress.numpy().reshape(B, M, 3, 3)[rows] if self.options.record_tet_stress else None
+        ts = None
+        if self.options.record_tet_stress:
+            ts = tet_stress.numpy()[: n * M].reshape(n, M, 3, 3).copy()
         return Equilibrium(
             mesh=self.mesh,
             status=self.status[rows],
@@ -2312,10 +2322,10 @@ class QuasiStaticSolver:
             displacement=q[:, :N].copy(),
             travel=travel,
             dof_force=dof_force,
-            vertex_stress=vstress.numpy().reshape(B, N, 3, 3)[rows],
-            von_mises=vm.numpy().reshape(B, N)[rows],
-            strain_energy=energy.numpy()[rows],
-            inverted_tets=inverted.numpy()[rows],
+            vertex_stress=vstress.numpy()[: n * N].reshape(n, N, 3, 3).copy(),
+            von_mises=vm.numpy()[: n * N].reshape(n, N).copy(),
+            strain_energy=energy.numpy()[:n].copy(),
+            inverted_tets=inverted.numpy()[:n].copy(),
             body_force=body_force,
             body_torque=body_torque,
             contact_normal_force=cn,
