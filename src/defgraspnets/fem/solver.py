@@ -387,12 +387,13 @@ class _LoadPath:
     held_linear: np.ndarray
 
     @classmethod
-    def empty(cls, batch_size: int) -> _LoadPath:
-        B = batch_size
+    def between(cls, start: dict, end: dict) -> _LoadPath:
+        """The path from ``start`` to ``end``, no problem on it yet (:meth:`begin`)."""
+        B = len(start["dof"])
         return cls(
-            start={},
-            end={},
-            change=np.zeros((B, 0)),
+            start=start,
+            end=end,
+            change=_load_change(start, end),
             todo=np.zeros(B, dtype=bool),
             lam_done=np.zeros(B),
             lam_try=np.zeros(B),
@@ -440,14 +441,17 @@ class _NewtonRun:
     damping: np.ndarray  # (B,) Levenberg-Marquardt factor of the exact Hessian
     stale_step: np.ndarray  # (B,) bool: chord Newton's last step came from a stale factor and was cut
     dof_targets: np.ndarray  # (B, D) |actuator force targets| (force scale of the tolerance)
-    atol: np.ndarray | float = 0.0
-    max_step: float = 0.0
-    escape: float = 0.0
+    atol: np.ndarray  # (B,) absolute residual tolerance [N]
+    max_step: float  # largest vertex or travel move per Newton step [m]
+    escape: float  # object motion within one increment that flags ESCAPED [m]
 
     @classmethod
-    def empty(cls, batch_size: int, num_dofs: int, relag_every: np.ndarray) -> _NewtonRun:
+    def empty(cls, batch_size: int, num_dofs: int, relag_every, atol, max_step, escape) -> _NewtonRun:
         B = batch_size
         return cls(
+            atol=atol,
+            max_step=max_step,
+            escape=escape,
             relag_every=relag_every,
             working=np.zeros(B, dtype=bool),
             started=np.zeros(B, dtype=bool),
@@ -1525,9 +1529,7 @@ class QuasiStaticSolver:
                 T = check_rigid_transform(pose, f"pose of body {name!r}")
                 end["poses"][:, self._body(name)] = np.broadcast_to(T, (B, 4, 4))
 
-        path = _LoadPath.empty(B)
-        path.start, path.end = start, end
-        path.change = _load_change(start, end)
+        path = _LoadPath.between(start, end)
         path.begin(self.status == SolveStatus.CONVERGED, initial_fraction)
         self._advance(path, barrier=True)
         # problems that failed stay at their last converged state; record how far they got
@@ -1593,9 +1595,7 @@ class QuasiStaticSolver:
         end = {k: (v if k == "poses" else v.copy()) for k, v in start.items()}
         end["dof"] = table[0].copy()
         self._dof_target[:] = table[0]
-        path = _LoadPath.empty(B)
-        path.start, path.end = start, end
-        path.change = _load_change(start, end)
+        path = _LoadPath.between(start, end)
         level = np.zeros(B, dtype=int)
         results: list[Equilibrium | None] = [None] * L
         filled = np.zeros((L, B), dtype=bool)
@@ -1723,10 +1723,14 @@ class QuasiStaticSolver:
         left their load path (reached its end or were flagged) and returns those it gave a new one
         (``path.begin``), which continue."""
         o = self.options
-        run = _NewtonRun.empty(self.batch_size, self.num_dofs, path.relag_every)
-        run.atol = 1e-14 * self._youngs_np * self.mesh.diameter**2
-        run.max_step = o.max_step_fraction * self.mesh.diameter
-        run.escape = o.escape_fraction * self.mesh.diameter
+        run = _NewtonRun.empty(
+            self.batch_size,
+            self.num_dofs,
+            path.relag_every,
+            atol=1e-14 * self._youngs_np * self.mesh.diameter**2,
+            max_step=o.max_step_fraction * self.mesh.diameter,
+            escape=o.escape_fraction * self.mesh.diameter,
+        )
         release = o.stabilization > 0 and o.stabilization_release
         springs = np.ones(self.batch_size, dtype=bool)  # increment stabilization springs on, per problem
         self._begin_increments(path, run, path.todo)

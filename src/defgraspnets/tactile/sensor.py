@@ -425,15 +425,20 @@ class MembraneSimulator:
             rotations[b] = item.pose.rotation.as_matrix()
         return items, frames, rotations
 
+    @staticmethod
+    def _push_steps(depth: np.ndarray, pushed: np.ndarray, max_step: float) -> list[dict]:
+        """The indenter targets of the load steps from the ``pushed`` depths to ``depth``: even steps of at
+        most ``max_step`` (one count for the whole batch)."""
+        n = max(1, int(np.ceil(np.max(np.abs(depth - pushed)) / max_step - 1e-9)))
+        return [{"indenter": pushed + (depth - pushed) * k / n} for k in range(1, n + 1)]
+
     def _push(self, depth: np.ndarray, pushed: np.ndarray, max_step: float):
         """Displacement-controlled travel from the current ``pushed`` depths to ``depth`` in solves of at
         most ``max_step``; flags problems whose indenter lost all contact on the way (it passed through
         the shell between surface vertices: the mesh is too coarse for this indenter)."""
-        s = self.solver
-        n = max(1, int(np.ceil(np.max(np.abs(depth - pushed)) / max_step - 1e-9)))
         eq = None
-        for k in range(1, n + 1):
-            eq = s.solve(targets={"indenter": pushed + (depth - pushed) * k / n})
+        for targets in self._push_steps(depth, pushed, max_step):
+            eq = self.solver.solve(targets=targets)
             self._flag_lost_contact(eq, depth > 0)
         return eq
 
@@ -526,8 +531,7 @@ class MembraneSimulator:
         steps, reading_steps, pushed = [], [], np.zeros(self.batch_size)
         for level in levels:
             depth = level * final
-            n = max(1, int(np.ceil(np.max(np.abs(depth - pushed)) / max_step - 1e-9)))
-            steps += [{"indenter": pushed + (depth - pushed) * k / n} for k in range(1, n + 1)]
+            steps += self._push_steps(depth, pushed, max_step)
             reading_steps.append(len(steps) - 1)
             pushed = depth
         out, clock = [], [time.perf_counter()]
