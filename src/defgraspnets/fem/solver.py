@@ -356,6 +356,14 @@ def pinched_vertices(normal_force: np.ndarray, normal: np.ndarray, max_cosine: f
     return out
 
 
+def _problem_rows(rows, name: str) -> np.ndarray:
+    """``rows`` as a 1-D int64 array of problem indices (checked)."""
+    rows = np.asarray(rows)
+    if rows.ndim != 1 or not (rows.size == 0 or np.issubdtype(rows.dtype, np.integer)):
+        raise ValueError(f"{name} must be a 1-D integer array, got dtype {rows.dtype} shape {rows.shape}")
+    return rows.astype(np.int64)
+
+
 def _load_change(start: dict, end: dict) -> np.ndarray:
     """(B, K) change of every load and target along a load path, per problem (the predictor compares it)."""
     B = len(start["dof"])
@@ -797,18 +805,47 @@ class QuasiStaticSolver:
                 return k
         raise KeyError(f"no rigid body named {name!r}; bodies are {[b.name for b in self.bodies]}")
 
-    def set_body_pose(self, name: str, pose) -> None:
-        """Pose (4x4, or (B, 4, 4) per problem) of body ``name``'s frame in the object frame at travel 0.
+    def set_body_pose(self, name: str, pose, rows=None) -> None:
+        """Pose (4x4, or one per problem) of body ``name``'s frame in the object frame at travel 0.
 
         Changing a pose moves the body instantly (no friction history is carried across the change); to
         drag contacts along (shear, twist), move the body with ``solve(body_poses=...)`` instead.
+        ``rows``: only these problems (integer indices; ``pose`` 4x4 or one per row) move; the others keep
+        their poses, friction history and factorizations.
         """
         k = self._body(name)
         T = check_rigid_transform(pose, f"pose of body {name!r}")
-        self._poses[:, k] = np.broadcast_to(T, (self.batch_size, 4, 4))
-        self._update_bodies(reference=True)
-        self._stick_stretch.zero_()
-        self.system.forget_factors()
+        if rows is None:
+            self._poses[:, k] = np.broadcast_to(T, (self.batch_size, 4, 4))
+            self._update_bodies(reference=True)
+            self._stick_stretch.zero_()
+            self.system.forget_factors()
+            return
+        rows = _problem_rows(rows, "rows")
+        if rows.size and (rows.min() < 0 or rows.max() >= self.batch_size):
+            raise ValueError(f"rows must lie in [0, {self.batch_size}), got {rows.min()}..{rows.max()}")
+        self._poses[rows, k] = np.broadcast_to(T, (len(rows), 4, 4))
+        mask = np.zeros(self.batch_size, dtype=bool)
+        mask[rows] = True
+        self._update_bodies()
+        self._commit_body_reference(mask)
+        self._zero_rows(self._stick_stretch, self.num_surface * self.num_bodies, rows)
+        self.system.forget_factors(mask)
+
+    def _zero_rows(self, array: wp.array, per: int, rows: np.ndarray) -> None:
+        """Zero the ``per`` entries of each problem of ``rows`` in a problem-major device array."""
+        if per == 0 or not len(rows):
+            return
+        import torch
+
+        dev = torch.device(wp.device_to_torch(self.device))
+        wp.synchronize_device(self.device)
+        t = wp.to_torch(array)
+        t[: self.batch_size * per].view(self.batch_size, per, *t.shape[1:])[
+            torch.as_tensor(rows, device=dev)
+        ] = 0
+        if self.device.is_cuda:
+            torch.cuda.synchronize(dev)
 
     def set_friction(self, name: str, mu) -> None:
         """Coulomb coefficient of body ``name`` with the object (scalar or (B,))."""
@@ -884,34 +921,46 @@ class QuasiStaticSolver:
         self._unpack(self._q_ref, self._positions_ref, self._travel_ref)
         self._commit_body_reference(np.ones(self.batch_size, dtype=bool))
 
-    def copy_state_from(self, other: QuasiStaticSolver, rows) -> None:
-        """Problem b of this solver takes the complete state of problem ``rows[b]`` of ``other``.
+    def copy_state_from(self, other: QuasiStaticSolver, rows, into=None) -> None:
+        """Problem ``into[i]`` of this solver takes the complete state of problem ``rows[i]`` of ``other``.
 
         ``other`` must be built on the same mesh (points and tets), the same rigid bodies (names, shapes,
-        controls, dofs), Dirichlet constraints, pressure surface, options and device; ``rows`` is a
-        (batch_size,) integer array into ``other``'s problems (repeats allowed: one solved problem copied to
-        several replicas). Copied: displacements and travels (current, converged reference, trial and
-        predictor), friction lags, stick stretches and their Aitken relaxation, body poses and frictions
-        with their friction reference placements, materials, body loads, dof targets, prescribed
-        displacements, nodal and dof forces, gas laws and pressures, statuses, Levenberg-Marquardt and
-        chord-Newton bookkeeping, and the stored factorizations (shared: they are never modified after
-        being made, only dropped or replaced). The solver is batch-independent, so the next solve of a
+        controls, dofs), Dirichlet constraints, pressure surface, options and device (it may be this
+        solver); ``rows`` is an integer array into ``other``'s problems (repeats allowed: one solved problem
+        copied to several replicas) and ``into`` the distinct problems of this solver that take them
+        (default: all, ``rows`` then names one source per problem). Copied: displacements and travels
+        (current, converged reference, trial and predictor), friction lags, stick stretches and their
+        Aitken relaxation, body poses and frictions with their friction reference placements, materials,
+        body loads, dof targets, prescribed displacements, nodal and dof forces, gas laws and pressures,
+        statuses, Levenberg-Marquardt and chord-Newton bookkeeping, and the stored factorizations (shared:
+        they are never modified after being made, only dropped or replaced). The other problems of this
+        solver keep their states (and factorizations, unless a copied material differs from the one it
+        replaces: then every problem refactors). The solver is batch-independent, so the next solve of a
         copied problem is bit-identical to the one its source problem would make.
         """
         if not isinstance(other, QuasiStaticSolver):
             raise TypeError(f"other must be a QuasiStaticSolver, got {type(other).__name__}")
-        rows = np.asarray(rows)
-        if rows.ndim != 1 or not (rows.size == 0 or np.issubdtype(rows.dtype, np.integer)):
-            raise ValueError(f"rows must be a 1-D integer array, got dtype {rows.dtype} shape {rows.shape}")
-        rows = rows.astype(np.int64)
         B, Bo = self.batch_size, other.batch_size
-        if len(rows) != B:
-            raise ValueError(
-                f"rows must name one problem of other per problem of this solver: {B}, got {len(rows)}"
-            )
-        if rows.min() < 0 or rows.max() >= Bo:
+        rows = _problem_rows(rows, "rows")
+        if into is None:
+            if len(rows) != B:
+                raise ValueError(
+                    f"rows must name one problem of other per problem of this solver: {B}, got {len(rows)}"
+                )
+            into = np.arange(B)
+        else:
+            into = _problem_rows(into, "into")
+            if len(into) != len(rows):
+                raise ValueError(f"into names {len(into)} problems for {len(rows)} rows")
+            if len(np.unique(into)) != len(into):
+                raise ValueError("into must name distinct problems")
+            if into.size and (into.min() < 0 or into.max() >= B):
+                raise ValueError(f"into must lie in [0, {B}) (this batch), got {into.min()}..{into.max()}")
+        if rows.size and (rows.min() < 0 or rows.max() >= Bo):
             raise ValueError(f"rows must lie in [0, {Bo}) (other's batch), got {rows.min()}..{rows.max()}")
         self._check_compatible(other)
+        if not rows.size:
+            return
         N, D, K, S, R = (
             self.mesh.num_vertices,
             self.num_dofs,
@@ -919,19 +968,30 @@ class QuasiStaticSolver:
             self.num_surface,
             self.rows_per_problem,
         )
-        dev = self.device
+        import torch
+
+        dev = torch.device(wp.device_to_torch(self.device))
+        src_rows = torch.as_tensor(rows, device=dev)
+        dst_rows = torch.as_tensor(into, device=dev)
 
         def gather(dst, src, per: int):
-            """dst (this batch's array) <- src (other's) problem rows, ``per`` entries per problem."""
+            """dst (this batch's array) rows ``into`` <- src (other's) problem rows, ``per`` entries each."""
             if per == 0:
                 return
-            s = src.numpy()
-            d = dst.numpy().copy()
-            d[: B * per] = s[: Bo * per].reshape(Bo, per, *s.shape[1:])[rows].reshape(B * per, *s.shape[1:])
-            dst.assign(wp.array(d, dtype=dst.dtype, device=dev))
+            d, s = wp.to_torch(dst), wp.to_torch(src)
+            d[: B * per].view(B, per, *d.shape[1:])[dst_rows] = s[: Bo * per].view(Bo, per, *s.shape[1:])[
+                src_rows
+            ]
 
         # materials first (set_material rebuilds the per-problem material arrays and drops factorizations)
-        self.set_material([other.materials[r] for r in rows])
+        mats = list(self.materials)
+        for i, r in zip(into.tolist(), rows.tolist()):
+            mats[i] = other.materials[r]
+        if len(into) == B or any(a is not b and a != b for a, b in zip(mats, self.materials)):
+            self.set_material(mats)
+        wp.synchronize_device(self.device)
+        if self.device.is_cuda:
+            torch.cuda.synchronize(dev)
         per_row = [
             "_q",
             "_q_ref",
@@ -972,28 +1032,37 @@ class QuasiStaticSolver:
             gather(getattr(self, name), getattr(other, name), 1)
         for name in ("rotation", "translation", "axis", "friction", "ref_rotation", "ref_translation"):
             gather(getattr(self._bodies, name), getattr(other._bodies, name), K)
-        # host state
-        self._poses = other._poses[rows].copy()
-        self._friction = other._friction[rows].copy()
-        self._relag_omega = other._relag_omega[rows].copy()
-        self._relag_has_residual = other._relag_has_residual[rows].copy()
-        self._last_change = other._last_change[rows].copy()
-        self._factor_steps = other._factor_steps[rows].copy()
-        self._factor_damping = other._factor_damping[rows].copy()
-        self._gas_law = other._gas_law[rows].copy()
-        self._gas_k = np.asarray(other._gas_k)[rows].copy()
-        self._gas_target = other._gas_target[rows].copy()
-        self._dof_target = other._dof_target[rows].copy()
-        self._prescribed = other._prescribed[rows].copy()
-        self.status = other.status[rows].copy()
-        self._stabilization_at_convergence = other._stabilization_at_convergence[rows].copy()
-        self._load = BodyLoad(**{k: v[rows] for k, v in other._load.arrays(Bo).items()})
-        # linear-solver state: factorizations (shared, read-only once made), multigrid hierarchies
         sysm, src = self.system, other.system
-        sysm.share_factors_from(src, rows)
         for name in ("gradient", "rhs", "increment"):
             gather(getattr(sysm, name), getattr(src, name), R)
         gather(sysm.values, src.values, self.pattern.nnz)
+        if self.device.is_cuda:
+            torch.cuda.synchronize(dev)
+        # host state
+        self._poses[into] = other._poses[rows]
+        self._friction[into] = other._friction[rows]
+        self._relag_omega[into] = other._relag_omega[rows]
+        self._relag_has_residual[into] = other._relag_has_residual[rows]
+        if self._last_change.shape[1:] != other._last_change.shape[1:]:  # (B, 0): no change committed yet
+            self._last_change = np.zeros((B, *other._last_change.shape[1:]))
+        self._last_change[into] = other._last_change[rows]
+        self._factor_steps[into] = other._factor_steps[rows]
+        self._factor_damping[into] = other._factor_damping[rows]
+        self._gas_law[into] = other._gas_law[rows]
+        self._gas_k = np.broadcast_to(np.asarray(self._gas_k, dtype=np.float64), (B,)).copy()
+        self._gas_k[into] = np.asarray(other._gas_k)[rows]
+        self._gas_target[into] = other._gas_target[rows]
+        self._dof_target[into] = other._dof_target[rows]
+        self._prescribed[into] = other._prescribed[rows]
+        self.status[into] = other.status[rows]
+        self._stabilization_at_convergence[into] = other._stabilization_at_convergence[rows]
+        mine, theirs = self._load.arrays(B), other._load.arrays(Bo)
+        for k in mine:
+            mine[k] = np.array(mine[k])
+            mine[k][into] = theirs[k][rows]
+        self._load = BodyLoad(**mine)
+        # linear-solver state: factorizations (shared, read-only once made), multigrid hierarchies
+        sysm.share_factors_from(src, rows, into)
 
     def _check_compatible(self, other: QuasiStaticSolver) -> None:
         """Raise ValueError unless ``other`` has this solver's mesh, bodies, constraints, options, device."""
@@ -1554,7 +1623,7 @@ class QuasiStaticSolver:
         they are bit-identical), but a batch no longer waits at every level for its slowest problem: while a
         hard grasp spends hundreds of Newton iterations on one force step, the others go on with theirs, and
         the batch takes about as many Newton iterations as its slowest problem's own path instead of the
-        sum over the levels of each level's slowest problem.
+        sum over the levels of each level's slowest problem. (:meth:`solve_stream` with one job per problem.)
 
         Args:
             levels: sequence of dicts dof name -> target (force [N] or travel [m], scalar or (B,)), as
@@ -1590,39 +1659,18 @@ class QuasiStaticSolver:
             from tqdm.auto import tqdm
 
             bar = tqdm(total=L, desc="load levels", leave=False)
-
-        start = self._loads_now()
-        end = {k: (v if k == "poses" else v.copy()) for k, v in start.items()}
-        end["dof"] = table[0].copy()
-        self._dof_target[:] = table[0]
-        path = _LoadPath.between(start, end)
-        level = np.zeros(B, dtype=int)
         results: list[Equilibrium | None] = [None] * L
         filled = np.zeros((L, B), dtype=bool)
         emitted = 0
 
-        def store(part: Equilibrium, rows: np.ndarray, levels_of_rows: np.ndarray) -> None:
-            """Rows ``rows`` of the levels ``levels_of_rows`` <- the problems of ``part`` (one per row)."""
-            for s in np.unique(levels_of_rows):
-                sel = np.nonzero(levels_of_rows == s)[0]
-                if results[s] is None:
-                    results[s] = part.take(np.zeros(B, dtype=int))
-                results[s].put(rows[sel], part.take(sel))
-                filled[s, rows[sel]] = True
-
-        def flagged_hereafter(part: Equilibrium, rows: np.ndarray, first: np.ndarray) -> None:
-            """A flagged problem stays at its last converged state: the levels from ``first`` on report it
-            there, as solve() reports a flagged problem (no load fraction, iterations or residual)."""
-            if not rows.size:
-                return
-            for a in (part.load_fraction, part.newton_iterations, part.linear_iterations, part.residual):
-                a[:] = 0
-            for s in range(int(first.min()), L):
-                later = np.nonzero(first <= s)[0]
-                store(part.take(later), rows[later], np.full(later.size, s))
-
-        def emit() -> None:
+        def reached(problems: np.ndarray, steps: np.ndarray, part: Equilibrium) -> None:
             nonlocal emitted
+            for k in np.unique(steps):
+                sel = np.nonzero(steps == k)[0]
+                if results[k] is None:
+                    results[k] = part.take(np.zeros(B, dtype=int))
+                results[k].put(problems[sel], part.take(sel))
+                filled[k, problems[sel]] = True
             while emitted < L and filled[emitted].all():
                 if on_level is not None:
                     on_level(emitted, results[emitted])
@@ -1630,53 +1678,211 @@ class QuasiStaticSolver:
                 if bar is not None:
                     bar.update(1)
 
+        try:
+            self._stream(
+                B,
+                lambda jobs, problems: [table[:, j] for j in jobs],
+                None,
+                reached,
+                None if check is None else (lambda jobs, steps, part: check(steps, part, jobs)),
+            )
+        finally:
+            if bar is not None:
+                bar.close()
+        self._dof_target[:] = table[-1]  # flagged problems too, as after one solve() per level
+        if emitted < L:  # cannot happen: every problem either reaches the last level or is flagged
+            raise RuntimeError(f"solve_sequence ended with levels {emitted}..{L - 1} incomplete")
+        return results
+
+    def solve_stream(
+        self,
+        jobs,
+        start: Callable[[np.ndarray, np.ndarray], None],
+        on_levels: Callable[[np.ndarray, np.ndarray, Equilibrium], None],
+        check: Callable[[np.ndarray, np.ndarray, Equilibrium], np.ndarray] | None = None,
+        progress: bool = False,
+    ) -> None:
+        """Solve a queue of jobs, each a sequence of target levels, keeping the batch full: a problem that
+        has finished its job (or was flagged) takes the next job of the queue at the next Newton pass.
+
+        :meth:`solve_sequence` spares the batch the wait at every level for its slowest problem; the batch
+        still ends with its slowest problem, and from there on the launches and synchronizations of every
+        pass serve a few problems. Here the batch's B problems are slots: the work of many more jobs than B
+        (a data set's indentation paths, squeeze ramps) flows through them, and the slow jobs' tails overlap
+        with the others' work. Each job's equilibria are those :meth:`solve_sequence` gives it from the same
+        start state (bit for bit with the solvers that factor one problem at a time).
+
+        Args:
+            jobs: a sequence of jobs; job j is a sequence of dicts dof name -> scalar target (force [N] or
+                travel [m]), its levels; unnamed dofs keep their previous level's targets (the first
+                level's: those of the problem after ``start``).
+            start: ``start(problems, job_ids)`` must put the problems (integer indices) into the start states
+                of the jobs, e.g. :meth:`copy_state_from` a solved template problem (``into=problems``) and
+                :meth:`set_body_pose` (``rows=problems``); it must not touch the other problems. Called
+                with the first min(B, J) jobs, then whenever problems have finished theirs. A problem whose
+                ``status`` is not ``CONVERGED`` after it reports its job flagged at every level.
+            on_levels: ``on_levels(job_ids, levels, part)`` with (job, level) pairs just reached and their
+                equilibria (row i of ``part`` for pair i). Every level of every job is reported once and a
+                job's levels in order; a job flagged at a level (no equilibrium, or by ``check``) reports it
+                there with its status, and every later level with its last converged state and no load
+                fraction, iterations or residual (as :meth:`solve` reports a flagged problem).
+            check: ``check(job_ids, levels, part) -> codes`` for (job, level) pairs just reached: one
+                :class:`SolveStatus` per row; any code but ``CONVERGED`` flags the job there.
+            progress: a progress bar over the jobs.
+        """
+        jobs = list(jobs)
+        for j, job in enumerate(jobs):
+            if isinstance(job, Mapping) or not len(job):
+                raise ValueError(f"job {j} must be a non-empty sequence of levels (dicts dof name -> target)")
+            for k, level in enumerate(job):
+                if not isinstance(level, Mapping):
+                    raise TypeError(f"level {k} of job {j} must be a dict dof name -> target")
+                for name, value in level.items():
+                    self._dof(name)
+                    if not (np.ndim(value) == 0 and np.isfinite(value)):
+                        raise ValueError(f"target {name!r} of level {k} of job {j} must be a finite scalar")
+
+        def tables(job_ids, problems):
+            out = []
+            for j, b in zip(job_ids, problems):
+                targets, rows = self._dof_target[b].copy(), []
+                for level in jobs[j]:
+                    targets = targets.copy()
+                    for name, value in level.items():
+                        targets[self._dof(name)] = float(value)
+                    rows.append(targets)
+                out.append(np.stack(rows))
+            return out
+
+        bar = None
+        if progress:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=len(jobs), desc="jobs", leave=False)
+
+        def reached(job_ids, steps, part):
+            on_levels(job_ids, steps, part)
+            if bar is not None:
+                last = np.array([len(jobs[j]) - 1 for j in job_ids], dtype=int)
+                bar.update(int((steps == last).sum()))
+
+        try:
+            self._stream(len(jobs), tables, start, reached, check)
+        finally:
+            if bar is not None:
+                bar.close()
+
+    def _stream(self, num_jobs: int, tables, start, reached, check) -> None:
+        """The engine of :meth:`solve_sequence` and :meth:`solve_stream`: jobs 0..num_jobs-1 flow through
+        the batch's problems. ``tables(job_ids, problems)`` gives each job's (L_j, D) dof targets once its
+        problem has been started (``start(problems, job_ids)``, or the problem as it is if ``start`` is
+        None); ``reached(job_ids, levels, part)`` and ``check`` as solve_stream's ``on_levels`` and
+        ``check``."""
+        B = self.batch_size
+        if start is None and num_jobs > B:
+            raise ValueError(f"{num_jobs} jobs need a start function to share {B} problems")
+        now = self._loads_now()
+        end = {k: (v if k == "poses" else v.copy()) for k, v in now.items()}
+        path = _LoadPath.between(now, end)
+        job_of = np.full(B, -1)  # the job each problem is working on (-1: none)
+        level = np.zeros(B, dtype=int)
+        table: dict[int, np.ndarray] = {}
+        queue = [0]  # the next job to start
+
+        def report_flagged(part: Equilibrium, problems: np.ndarray, first: np.ndarray) -> None:
+            """Jobs of flagged ``problems`` report the levels from ``first`` on at their last state."""
+            for a in (part.load_fraction, part.newton_iterations, part.linear_iterations, part.residual):
+                a[:] = 0
+            ids, steps, rows = [], [], []
+            for i, b in enumerate(problems):
+                j = int(job_of[b])
+                for k in range(int(first[i]), len(table[j])):
+                    ids.append(j)
+                    steps.append(k)
+                    rows.append(i)
+            if rows:
+                reached(np.array(ids), np.array(steps), part.take(np.array(rows)))
+
+        def finish(problems: np.ndarray) -> None:
+            for b in problems:
+                table.pop(int(job_of[b]), None)
+            job_of[problems] = -1
+
+        def assign(free: np.ndarray) -> np.ndarray:
+            """Start the next jobs on the ``free`` problems; returns the mask of those started."""
+            started = np.zeros(B, dtype=bool)
+            while free.size and queue[0] < num_jobs:
+                n = min(free.size, num_jobs - queue[0])
+                problems, free = free[:n], free[n:]
+                ids = np.arange(queue[0], queue[0] + n)
+                queue[0] += n
+                if start is not None:
+                    start(problems, ids)
+                for j, t in zip(ids, tables(ids, problems)):
+                    table[int(j)] = t
+                job_of[problems] = ids
+                level[problems] = 0
+                now = self._loads_now()
+                for key in ("dof", "nodal_force", "prescribed", "pressure", "poses"):
+                    path.start[key][problems] = now[key][problems]
+                    path.end[key][problems] = now[key][problems]
+                path.end["dof"][problems] = np.stack([table[int(j)][0] for j in ids])
+                self._dof_target[problems] = path.end["dof"][problems]
+                path.change[problems] = _load_change(
+                    {k: v[problems] for k, v in path.start.items()},
+                    {k: v[problems] for k, v in path.end.items()},
+                )
+                idle = problems[self.status[problems] != SolveStatus.CONVERGED]
+                if idle.size:  # flagged before its job began: every level reports it at its state
+                    part = self._results(np.zeros(B), np.zeros(B, int), np.zeros(B, int), np.zeros(B), idle)
+                    report_flagged(part, idle, np.zeros(idle.size, dtype=int))
+                    finish(idle)
+                    free = np.concatenate([free, idle])
+                started[problems] = self.status[problems] == SolveStatus.CONVERGED
+            path.begin(started, 1.0)
+            return started
+
         def level_done(left: np.ndarray) -> np.ndarray:
-            """Record the problems that left their level; the converged ones move on. Returns those."""
+            """Report the problems that left their level; the converged ones move on (or take new jobs)."""
             rows = np.nonzero(left)[0]
             part = self._results(path.lam_done, path.newton_total, path.linear_total, path.residual, rows)
+            ids, steps = job_of[rows], level[rows]
             if check is not None:
-                reached = np.nonzero(part.converged)[0]
-                if reached.size:
-                    codes = np.asarray(check(level[rows[reached]], part.take(reached), rows[reached]))
-                    if codes.shape != reached.shape:
-                        raise ValueError(f"check must return {reached.size} status codes, got {codes.shape}")
-                    flag = reached[codes != SolveStatus.CONVERGED]
+                ok = np.nonzero(part.converged)[0]
+                if ok.size:
+                    codes = np.asarray(check(ids[ok], steps[ok], part.take(ok)))
+                    if codes.shape != ok.shape:
+                        raise ValueError(f"check must return {ok.size} status codes, got {codes.shape}")
+                    flag = ok[codes != SolveStatus.CONVERGED]
                     part.status[flag] = codes[codes != SolveStatus.CONVERGED]
                     self.status[rows[flag]] = part.status[flag]
-            store(part, rows, level[rows])
+            reached(ids, steps, part)
             flagged = np.nonzero(self.status[rows] != SolveStatus.CONVERGED)[0]
-            flagged_hereafter(part.take(flagged), rows[flagged], level[rows[flagged]] + 1)
-            move = left & (self.status == SolveStatus.CONVERGED) & (level < L - 1)
+            if flagged.size:
+                report_flagged(part.take(flagged), rows[flagged], steps[flagged] + 1)
+            last = np.array([len(table[int(j)]) - 1 for j in ids], dtype=int)
+            going = (self.status[rows] == SolveStatus.CONVERGED) & (steps < last)
+            move = np.zeros(B, dtype=bool)
+            move[rows[going]] = True
             if move.any():
                 level[move] += 1
                 for key in ("dof", "nodal_force", "prescribed", "pressure"):
                     path.start[key][move] = path.end[key][move]
-                path.end["dof"][move] = table[level[move], np.nonzero(move)[0]]
+                path.end["dof"][move] = np.stack(
+                    [table[int(job_of[b])][level[b]] for b in np.nonzero(move)[0]]
+                )
                 self._dof_target[move] = path.end["dof"][move]
                 path.change[move] = _load_change(
                     {k: v[move] for k, v in path.start.items()}, {k: v[move] for k, v in path.end.items()}
                 )
                 path.begin(move, 1.0)
-            emit()
-            return move
+            done = rows[~going]
+            finish(done)
+            return move | assign(done)
 
-        idle = self.status != SolveStatus.CONVERGED
-        if idle.any():  # flagged before this call: every level reports them at their state
-            rows = np.nonzero(idle)[0]
-            part = self._results(np.zeros(B), np.zeros(B, int), np.zeros(B, int), np.zeros(B), rows)
-            flagged_hereafter(part, rows, np.zeros(rows.size, dtype=int))
-        path.begin(~idle, 1.0)
-        try:
-            self._advance(path, barrier=False, level_done=level_done)
-        finally:
-            if bar is not None:
-                bar.close()
-        self._dof_target[:] = table[-1]
+        assign(np.arange(B))
+        self._advance(path, barrier=False, level_done=level_done)
         self._unpack(self._q, self._positions, self._travel)
-        emit()
-        if emitted < L:  # cannot happen: every problem either reaches the last level or is flagged
-            raise RuntimeError(f"solve_sequence ended with levels {emitted}..{L - 1} incomplete")
-        return results
 
     def ramp(
         self,

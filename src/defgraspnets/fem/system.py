@@ -193,21 +193,28 @@ class BatchedSystem:
             self._direct_factors.pop(int(p), None)
             self._dense_factors.pop(int(p), None)
 
-    def share_factors_from(self, other: BatchedSystem, rows: np.ndarray) -> None:
-        """Problem b takes problem ``rows[b]`` of ``other``'s stored factorizations and multigrid hierarchy
-        (shared, not copied: they are never modified after being made, only replaced or dropped), and its
-        factorization counters."""
-        self.forget_factors()
-        self._amg.clear()
-        for b, r in enumerate(np.asarray(rows).tolist()):
+    def share_factors_from(
+        self, other: BatchedSystem, rows: np.ndarray, into: np.ndarray | None = None
+    ) -> None:
+        """Problem ``into[i]`` (default: i, every problem) takes problem ``rows[i]`` of ``other``'s stored
+        factorizations and multigrid hierarchy (shared, not copied: they are never modified after being
+        made, only replaced or dropped), and its factorization counters; other problems keep theirs."""
+        rows = np.asarray(rows, dtype=np.int64)
+        into = np.arange(self.batch_size) if into is None else np.asarray(into, dtype=np.int64)
+        mask = np.zeros(self.batch_size, dtype=bool)
+        mask[into] = True
+        self.forget_factors(mask)
+        for b in into.tolist():
+            self._amg.pop(b, None)
+        for b, r in zip(into.tolist(), rows.tolist()):
             if r in other._direct_factors:
                 self._direct_factors[b] = other._direct_factors[r]
             if r in other._dense_factors:
                 self._dense_factors[b] = other._dense_factors[r]
             if r in other._amg:
                 self._amg[b] = list(other._amg[r])
-        self.fresh_factor = other.fresh_factor[rows].copy()
-        self.factorizations = other.factorizations[rows].copy()
+        self.fresh_factor[into] = other.fresh_factor[rows]
+        self.factorizations[into] = other.factorizations[rows]
 
     def _to_factor(self, todo, stored: dict, refactor: np.ndarray | None) -> list[int]:
         """The problems of ``todo`` that need a new factorization: those asked to (``refactor``) and those

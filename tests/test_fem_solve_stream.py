@@ -1,0 +1,178 @@
+"""QuasiStaticSolver.solve_stream: a queue of jobs flows through a smaller batch (a problem that finished
+its job takes the next one), each job reaching the equilibria solve_sequence gives it; and the row-wise
+state copy and body pose it builds on."""
+
+import numpy as np
+import pytest
+
+from defgraspnets import fem
+
+OFFSETS = np.array([0.0, 0.002, 0.004, 0.001, 0.003])  # m: where the pads grip along x
+FORCES = np.array([1.0, 2.0, 3.0, 1.5, 2.5])  # N: grip force at the last level
+STEPS = 3
+
+
+def _solver(offsets=OFFSETS) -> fem.QuasiStaticSolver:
+    """The off-centre pad squeeze of test_fem_solve_sequence, gripped at 20 % of its force under gravity."""
+    from fem_helpers import pad_squeeze_solver
+
+    solver = pad_squeeze_solver(offsets, linear_solver="dense")
+    scale = FORCES[: len(offsets)]
+    solver.solve(targets={"grip": 0.2 * scale}, body_load=fem.BodyLoad(gravity=(0.0, 0.0, -9.81)))
+    return solver
+
+
+def _levels(job: int, steps: int = STEPS) -> list[dict]:
+    return [{"grip": float(FORCES[job] * (0.2 + 0.8 * (k + 1) / STEPS))} for k in range(steps)]
+
+
+def _row(eq: fem.Equilibrium, i: int) -> fem.Equilibrium:
+    return eq.take(np.array([i]))
+
+
+def _assert_same(a: fem.Equilibrium, b: fem.Equilibrium) -> None:
+    np.testing.assert_array_equal(b.status, a.status)
+    for name in ("load_fraction", "newton_iterations", "linear_iterations", "residual", "displacement"):
+        np.testing.assert_array_equal(getattr(b, name), getattr(a, name), err_msg=name)
+    np.testing.assert_array_equal(b.von_mises, a.von_mises)
+    np.testing.assert_array_equal(b.travel["grip"], a.travel["grip"])
+    for body in ("left", "right"):
+        np.testing.assert_array_equal(b.contact_friction_force[body], a.contact_friction_force[body])
+
+
+def _stream(batch_size: int, lengths, check=None):
+    """Jobs j = 0..4 (job j: grasp j's levels, ``lengths[j]`` of them) through a ``batch_size`` batch whose
+    problems start each job from the gripped template problem j. Returns {(job, level): equilibrium},
+    the order of the reports and the (problem, job) starts."""
+    template = _solver()
+    solver = _solver(OFFSETS[:batch_size])
+    got, order, starts = {}, [], []
+
+    def start(problems, jobs):
+        starts.extend(zip(problems.tolist(), jobs.tolist()))
+        solver.copy_state_from(template, rows=jobs, into=problems)
+
+    def on_levels(jobs, levels, part):
+        assert len(jobs) == len(levels) == part.batch_size
+        for i, (j, k) in enumerate(zip(jobs.tolist(), levels.tolist())):
+            assert (j, k) not in got
+            got[(j, k)] = _row(part, i)
+            order.append((j, k))
+
+    jobs = [_levels(j, n) for j, n in enumerate(lengths)]
+    solver.solve_stream(jobs, start, on_levels, check=check)
+    return got, order, starts
+
+
+def test_jobs_through_a_smaller_batch_reach_the_equilibria_of_one_sequence_per_job():
+    expected = _solver().solve_sequence([{"grip": [lv[k]["grip"] for lv in map(_levels, range(5))]}
+                                         for k in range(STEPS)])  # fmt: skip
+    lengths = [3, 3, 2, 3, 1]  # a job may stop early: its first levels are the longer job's
+    got, order, starts = _stream(2, lengths)
+    assert sorted(got) == [(j, k) for j in range(5) for k in range(lengths[j])]
+    for j in range(5):
+        assert [k for jj, k in order if jj == j] == list(range(lengths[j]))  # a job's levels in order
+        for k in range(lengths[j]):
+            _assert_same(_row(expected[k], j), got[(j, k)])
+    # two problems served five jobs: each new job went to a problem that had finished its last one
+    assert [j for _, j in starts] == [0, 1, 2, 3, 4] and {b for b, _ in starts} == {0, 1}
+    assert starts[:2] == [(0, 0), (1, 1)]
+
+
+def test_a_flagged_job_reports_its_later_levels_and_frees_its_problem():
+    """check stops job 2 where it presses harder than 2 N (its second level): that level carries the flag,
+    the last reports the state there without iterations, and the next job still runs on that problem."""
+
+    def too_hard(jobs, levels, part):
+        hard = (jobs == 2) & (part.dof_force["grip"] > 2.0)
+        return np.where(hard, fem.SolveStatus.ESCAPED, fem.SolveStatus.CONVERGED)
+
+    got, _, starts = _stream(2, [3] * 5, check=too_hard)
+    assert got[(2, 0)].converged[0] and not got[(2, 1)].converged[0]
+    assert got[(2, 1)].status[0] == got[(2, 2)].status[0] == fem.SolveStatus.ESCAPED
+    assert got[(2, 1)].newton_iterations[0] > 0 and got[(2, 2)].newton_iterations[0] == 0
+    np.testing.assert_array_equal(got[(2, 2)].displacement, got[(2, 1)].displacement)
+    assert all(got[(j, 2)].converged[0] for j in (0, 1, 3, 4))
+    assert len(starts) == 5
+
+
+def test_a_problem_flagged_by_its_start_reports_every_level_and_the_queue_goes_on():
+    template = _solver()
+    solver = _solver(OFFSETS[:2])
+    got = {}
+
+    def start(problems, jobs):
+        solver.copy_state_from(template, rows=jobs, into=problems)
+        solver.status[problems[jobs == 1]] = fem.SolveStatus.ESCAPED
+
+    def on_levels(jobs, levels, part):
+        for i, (j, k) in enumerate(zip(jobs.tolist(), levels.tolist())):
+            got[(j, k)] = _row(part, i)
+
+    solver.solve_stream([_levels(j) for j in range(4)], start, on_levels)
+    assert sorted(got) == [(j, k) for j in range(4) for k in range(STEPS)]
+    assert all(got[(1, k)].status[0] == fem.SolveStatus.ESCAPED for k in range(STEPS))
+    assert all(got[(1, k)].newton_iterations[0] == 0 for k in range(STEPS))
+    assert all(got[(j, STEPS - 1)].converged[0] for j in (0, 2, 3))
+
+
+def test_jobs_are_checked():
+    solver = _solver(OFFSETS[:2])
+
+    def run(jobs):
+        solver.solve_stream(jobs, lambda p, j: None, lambda j, k, part: None)
+
+    with pytest.raises(ValueError, match="job 1 must be a non-empty sequence"):
+        run([_levels(0), []])
+    with pytest.raises(TypeError, match="level 0 of job 0 must be a dict"):
+        run([[1.0]])
+    with pytest.raises(KeyError, match="unknown dof 'grasp'"):
+        run([[{"grasp": 1.0}]])
+    with pytest.raises(ValueError, match="'grip' of level 1 of job 0 must be a finite scalar"):
+        run([[{"grip": 1.0}, {"grip": np.nan}]])
+
+
+def test_a_row_wise_state_copy_leaves_the_other_problems_untouched():
+    """copy_state_from(into=...): the copied problem solves as its source, the others as if untouched."""
+    source = _solver()
+    reference = _solver()
+    solver = _solver()
+    solver.copy_state_from(source, rows=[4], into=[1])
+    more = {"grip": FORCES}
+    a, b, c = reference.solve(targets=more), solver.solve(targets=more), source.solve(targets=more)
+    keep = [0, 2, 3, 4]
+    _assert_same(a.take(np.array(keep)), b.take(np.array(keep)))
+    # problem 1 now holds grasp 4 (its pose and state): as after a whole-batch copy
+    whole = _solver()
+    whole.copy_state_from(_solver(), rows=[0, 4, 2, 3, 4])
+    _assert_same(whole.solve(targets=more).take(np.array([1])), b.take(np.array([1])))
+    c4 = _solver().copy_state_from
+    with pytest.raises(ValueError, match="into names 2 problems for 1 rows"):
+        c4(source, rows=[0], into=[0, 1])
+    with pytest.raises(ValueError, match="into must name distinct"):
+        c4(source, rows=[0, 1], into=[1, 1])
+    with pytest.raises(ValueError, match=r"into must lie in \[0, 5\)"):
+        c4(source, rows=[0], into=[5])
+    assert c.converged.all()
+
+
+def test_a_row_wise_body_pose_moves_only_those_problems():
+    """set_body_pose(rows=...) equals setting every problem's pose with the others' poses unchanged."""
+    poses = {}
+    for name, s in (("left", 1), ("right", -1)):
+        T = np.tile(np.eye(4), (5, 1, 1))
+        T[:, 1, 3] = s * (0.0075 + 0.004)
+        T[:, 0, 3] = OFFSETS
+        poses[name] = T
+    whole, rows = _solver(), _solver()
+    for name, T in poses.items():
+        moved = T.copy()
+        moved[[1, 3], 0, 3] = [0.003, -0.002]
+        whole.set_body_pose(name, moved)
+        rows.set_body_pose(name, moved[[1, 3]], rows=[1, 3])
+    more = {"grip": FORCES}
+    a, b, c = whole.solve(targets=more), rows.solve(targets=more), _solver().solve(targets=more)
+    _assert_same(a.take(np.array([1, 3])), b.take(np.array([1, 3])))
+    _assert_same(c.take(np.array([0, 2, 4])), b.take(np.array([0, 2, 4])))  # the others as never moved
+    with pytest.raises(ValueError, match=r"rows must lie in \[0, 5\)"):
+        rows.set_body_pose("left", np.eye(4), rows=[7])
