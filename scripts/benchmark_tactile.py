@@ -58,6 +58,7 @@ def main(cfg: DictConfig) -> None:
         "selection": {"stride": cfg.stride, "limit": cfg.limit, "batch_size": cfg.batch_size},
         # true: the paths of a batch wait for each other at every load step
         "barrier": bool(cfg.barrier),
+        "stream": bool(cfg.stream),
         "timing": "generate_tactile_from_config end to end: simulator build and inflation, solves, "
         "rendering, shard writing",
         "paths": counts["paths"],

@@ -378,3 +378,36 @@ def test_perturbed_forearm_repeat_round_trip(small_sensor, tmp_path):
     # friction drags the sensor along +x; the forearm slips, at the perturbed coefficient (not 0.5)
     mu = friction + d[5]
     assert 0.9 * mu * -f[2] < f[0] <= mu * -f[2] * (1 + 1e-3)
+
+
+def test_streamed_poke_paths_match_batches_and_resume(small_sensor, tmp_path):
+    """stream=True: three poke paths flow through two problems (each from the exact inflated membrane);
+    the shard holds the samples the batches give, to the solver's tolerance, and a second run over more
+    paths appends only the new ones."""
+    sphere = SphereIndenter(radius=0.02)  # wider than the coarsest membrane's vertex spacing
+    grid = dict(enumerate(poke_grid()))
+    paths = [
+        TactilePath(p.indentation, p.ids[:2], p.params[:2], levels=p.levels[:2])
+        for p in select_paths(poke_paths(grid, sphere, small_sensor), 97, 3)
+    ]
+    shards = {}
+    for stream in (False, True):
+        sim = make_simulator(small_sensor, sphere, 1500.0, closed=True, batch_size=2, intrinsics=CAMERA)
+        out = tmp_path / f"poke_{stream}.h5"
+        writer = TactileShardWriter(out, sensor_references(sim), "poke")
+        first = generate_tactile_shard(sim, paths[:2], writer, progress=False, stream=stream)
+        counts = generate_tactile_shard(sim, paths, writer, progress=False, stream=stream)
+        assert first["samples"] + first["failed"] == 4
+        assert counts["skipped"] == 2 and counts["paths"] == 1
+        assert counts["samples"] + counts["failed"] == 2
+        writer.finalize()
+        shards[stream] = read_tactile_shard(out).samples
+    a, b = shards[False], shards[True]
+    np.testing.assert_array_equal(np.sort(b.sample_id), np.sort(a.sample_id))
+    assert len(a.sample_id) == 6
+    order_a, order_b = np.argsort(a.sample_id), np.argsort(b.sample_id)
+    np.testing.assert_allclose(
+        b.wrench[order_b], a.wrench[order_a], rtol=0, atol=2e-3 * np.abs(a.wrench).max()
+    )
+    np.testing.assert_array_equal(b.params[order_b], a.params[order_a])
+    np.testing.assert_allclose(b.indenter_pose[order_b], a.indenter_pose[order_a], atol=1e-9)

@@ -125,6 +125,55 @@ def test_paths_without_a_barrier_between_load_steps_give_the_same_readings(senso
     assert readings[False][1][1].contact_force[0] < -0.05  # N: the tilted poke pushes sideways
 
 
+def test_a_stream_of_paths_through_a_smaller_batch_reads_as_each_path_alone(sensor):
+    """indent_stream pushes three paths through two problems (the third starts where the first finished):
+    each path's readings are those of a one-path batch, and the membrane is left at its inflated state."""
+
+    def simulator(batch_size):
+        return MembraneSimulator(
+            sensor,
+            SPHERE,
+            _gas(sensor),
+            batch_size=batch_size,
+            friction=0.5,
+            intrinsics=PICO_FLEXX.scaled(0.25),
+        )
+
+    sim = simulator(2)
+    pole = sim.pole_indentation(0.006)
+    paths = [
+        Indentation(Pose(pole.pose.position + [0.01, 0.005, 0.0]), 0.004, (0.3, 0.0, -1.0)),
+        pole,
+        sim.pole_indentation(0.003, pose_offset=(0.012, -0.008)),
+    ]
+    got, order = {}, []
+
+    def on_readings(i, readings):
+        order.append(i)
+        got[i] = readings
+
+    sim.indent_stream(paths, [0.5, 1.0], on_readings)
+    assert sorted(order) == [0, 1, 2]
+    for i, path in enumerate(paths):  # a fresh simulator each: a withdrawn membrane is not the inflated one
+        expected = [level[0] for level in simulator(1).indent_series([path], [0.5, 1.0])]
+        for a, b in zip(expected, got[i], strict=True):
+            assert a.converged and b.converged
+            np.testing.assert_array_equal(b.positions, a.positions)
+            np.testing.assert_array_equal(b.base_wrench, a.base_wrench)
+            np.testing.assert_array_equal(b.depth.depth, a.depth.depth)
+            assert b.depth_travel == a.depth_travel
+            np.testing.assert_array_equal(b.indenter_pose.to_array(), a.indenter_pose.to_array())
+    # back at the inflated state: the next poke reads as on a fresh simulator
+    again = sim.indent_series([paths[1]], [1.0])[0][0]
+    np.testing.assert_array_equal(
+        again.positions, simulator(2).indent_series([paths[1]], [1.0])[0][0].positions
+    )
+    with pytest.raises(ValueError, match="one sequence of levels per path"):
+        sim.indent_stream(paths, [[1.0], [1.0]], on_readings)
+    with pytest.raises(ValueError, match="friction must hold 3"):
+        sim.indent_stream(paths, [1.0], on_readings, friction=[0.5])
+
+
 def test_closed_capsule_is_stiffer_than_open(sensor, open_sim):
     closed = MembraneSimulator(sensor, SPHERE, _gas(sensor), closed=True, batch_size=1, intrinsics=None)
     # sealed at the same PV: it inflates less than the regulated one (its pressure drops as it grows)

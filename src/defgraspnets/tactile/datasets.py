@@ -379,6 +379,7 @@ def generate_tactile_shard(
     progress: bool = True,
     _simulators: dict | None = None,
     barrier: bool = False,
+    stream: bool = False,
 ) -> dict:
     """Simulate ``paths`` (skipping those whose samples the writer already holds) and append them.
 
@@ -388,21 +389,20 @@ def generate_tactile_shard(
     indenter (built once per radius; one copy is kept at a time). Every batch is written as one atomic
     part, so an interrupted run resumes where it stopped.
 
+    ``stream``: the indentation paths (poking; not the forearm's press-and-move paths) flow through the
+    batch instead (:meth:`MembraneSimulator.indent_stream`: a problem takes the next path as soon as it has
+    finished one; every path starts from the exact inflated state with its own load-step count), and
+    every ``sim.batch_size`` finished paths are written as one part.
+
     Returns:
         counts: ``samples`` written, ``failed`` readings, ``skipped`` paths (already done), ``paths``.
     """
     done = writer.completed_sample_ids
     todo = [p for p in paths if not set(p.ids.tolist()) <= done]
     kind = "sphere" if isinstance(sim.indenter, SphereIndenter) else "capsule"
-    ref = writer.references
     by_kind: dict[tuple, list[TactilePath]] = defaultdict(list)
     for p in todo:
         by_kind[p.kind].append(p)
-    batches = [
-        group[i : i + sim.batch_size]
-        for group in by_kind.values()
-        for i in range(0, len(group), sim.batch_size)
-    ]
     counts = {"samples": 0, "failed": 0, "skipped": len(paths) - len(todo), "paths": len(todo)}
     sims = {1.0: sim} if _simulators is None else _simulators
 
@@ -420,62 +420,123 @@ def generate_tactile_shard(
         bar = tqdm(
             total=sum(len(p.ids) for p in todo), desc=f"tactile {writer.attrs['experiment']}", unit="state"
         )
-    for batch in batches:
-        try:
-            readings = _simulate(simulator(batch[0].radius_scale), batch, max_step, barrier)
-        except IndenterError as error:
-            if len(batch) > 1:  # some path leaves the workspace: simulate them one at a time
-                for p in batch:
-                    one = generate_tactile_shard(sim, [p], writer, max_step, False, sims, barrier)
-                    counts["samples"] += one["samples"]
-                    counts["failed"] += one["failed"]
-                if bar is not None:
-                    bar.update(sum(len(p.ids) for p in batch))
-                continue
-            readings, reason = [], f"workspace: {error}"
-            outcome = [(batch[0], level, None) for level in range(len(batch[0].ids))]
-        else:
-            reason = "no equilibrium, or the indenter lost contact (mesh too coarse for the indenter)"
-            outcome = [
-                (batch[b], level, r if r.converged and r.depth is not None else None)
-                for level, per_item in enumerate(readings)
-                for b, r in enumerate(per_item)
-            ]
-        # ids written before an interruption (a path's samples and failures are separate parts) are kept
-        done = writer.completed_sample_ids
-        outcome = [(p, level, r) for p, level, r in outcome if int(p.ids[level]) not in done]
-        good = sorted((o for o in outcome if o[2] is not None), key=lambda o: o[0].ids[o[1]])
-        bad = [o for o in outcome if o[2] is None]
-        if good:
-            writer.append(
-                TactileSamples(
-                    depth=np.stack([r.depth.depth for _, _, r in good]),
-                    points=np.stack([r.depth.points for _, _, r in good]) if writer.store_points else None,
-                    wrench=np.stack([r.base_wrench for _, _, r in good]),
-                    indenter_pose=np.stack([r.indenter_pose.to_array() for _, _, r in good]),
-                    indenter_kind=np.array([kind] * len(good)),
-                    pv_state=np.repeat(ref.pv_state[:1], len(good), axis=0),
-                    reference_index=np.zeros(len(good), dtype=np.int64),
-                    params=np.stack([p.params[level] for p, level, _ in good]),
-                    sample_id=np.array([p.ids[level] for p, level, _ in good]),
-                )
-            )
-            counts["samples"] += len(good)
-        if bad:
-            writer.record_failures(
-                TactileFailures(
-                    np.array([p.ids[level] for p, level, _ in bad]),
-                    np.stack([p.params[level] for p, level, _ in bad]),
-                    np.array([reason] * len(bad), dtype=object),
-                )
-            )
-            counts["failed"] += len(bad)
-            log.warning("%d tactile readings failed (recorded under failures/): %s", len(bad), reason)
-        if bar is not None:
-            bar.update(sum(len(p.ids) for p in batch))
+    failed_reason = "no equilibrium, or the indenter lost contact (mesh too coarse for the indenter)"
+    for group in by_kind.values():
+        if stream and group[0].motions is None:
+            _stream_paths(simulator(group[0].radius_scale), group, writer, kind, max_step, counts, bar)
+            continue
+        for batch in (group[i : i + sim.batch_size] for i in range(0, len(group), sim.batch_size)):
+            try:
+                readings = _simulate(simulator(batch[0].radius_scale), batch, max_step, barrier)
+            except IndenterError as error:
+                if len(batch) > 1:  # some path leaves the workspace: simulate them one at a time
+                    for p in batch:
+                        one = generate_tactile_shard(sim, [p], writer, max_step, False, sims, barrier)
+                        counts["samples"] += one["samples"]
+                        counts["failed"] += one["failed"]
+                    if bar is not None:
+                        bar.update(sum(len(p.ids) for p in batch))
+                    continue
+                _write_outcome(writer, kind, _failed_path(batch[0]), f"workspace: {error}", counts)
+            else:
+                outcome = [
+                    (batch[b], level, r if r.converged and r.depth is not None else None)
+                    for level, per_item in enumerate(readings)
+                    for b, r in enumerate(per_item)
+                ]
+                _write_outcome(writer, kind, outcome, failed_reason, counts)
+            if bar is not None:
+                bar.update(sum(len(p.ids) for p in batch))
     if bar is not None:
         bar.close()
     return counts
+
+
+def _failed_path(path: TactilePath) -> list[tuple]:
+    return [(path, level, None) for level in range(len(path.ids))]
+
+
+def _stream_paths(sim, group, writer, kind, max_step, counts, bar) -> None:
+    """Indentation paths of one kind through :meth:`MembraneSimulator.indent_stream`; every
+    ``sim.batch_size`` finished paths are written as one part (those that do not suit the workspace are
+    recorded as failures first)."""
+    failed_reason = "no equilibrium, or the indenter lost contact (mesh too coarse for the indenter)"
+    valid = []
+    for p in group:
+        try:
+            sim.path_frame(p.indentation)
+        except IndenterError as error:
+            _write_outcome(writer, kind, _failed_path(p), f"workspace: {error}", counts)
+            if bar is not None:
+                bar.update(len(p.ids))
+        else:
+            valid.append(p)
+    if not valid:
+        return
+    pending: list[tuple] = []
+    finished = [0]
+
+    def on_readings(i, readings):
+        p = valid[i]
+        pending.extend(
+            (p, level, r if r.converged and r.depth is not None else None) for level, r in enumerate(readings)
+        )
+        finished[0] += 1
+        if finished[0] % sim.batch_size == 0:
+            _write_outcome(writer, kind, pending, failed_reason, counts)
+            pending.clear()
+        if bar is not None:
+            bar.update(len(p.ids))
+
+    base = _base_friction(sim)
+    sim.indent_stream(
+        [p.indentation for p in valid],
+        [p.levels for p in valid],
+        on_readings,
+        render=True,
+        max_step=max_step,
+        friction=[base + p.friction_offset for p in valid],
+    )
+    if pending:
+        _write_outcome(writer, kind, pending, failed_reason, counts)
+
+
+def _write_outcome(
+    writer: TactileShardWriter, kind: str, outcome: list[tuple], reason: str, counts: dict
+) -> None:
+    """Append (path, level, reading or None) triples: readings as samples, None as failures (``reason``);
+    samples written before an interruption are not written again."""
+    ref = writer.references
+    # ids written before an interruption (a path's samples and failures are separate parts) are kept
+    done = writer.completed_sample_ids
+    outcome = [(p, level, r) for p, level, r in outcome if int(p.ids[level]) not in done]
+    good = sorted((o for o in outcome if o[2] is not None), key=lambda o: o[0].ids[o[1]])
+    bad = [o for o in outcome if o[2] is None]
+    if good:
+        writer.append(
+            TactileSamples(
+                depth=np.stack([r.depth.depth for _, _, r in good]),
+                points=np.stack([r.depth.points for _, _, r in good]) if writer.store_points else None,
+                wrench=np.stack([r.base_wrench for _, _, r in good]),
+                indenter_pose=np.stack([r.indenter_pose.to_array() for _, _, r in good]),
+                indenter_kind=np.array([kind] * len(good)),
+                pv_state=np.repeat(ref.pv_state[:1], len(good), axis=0),
+                reference_index=np.zeros(len(good), dtype=np.int64),
+                params=np.stack([p.params[level] for p, level, _ in good]),
+                sample_id=np.array([p.ids[level] for p, level, _ in good]),
+            )
+        )
+        counts["samples"] += len(good)
+    if bad:
+        writer.record_failures(
+            TactileFailures(
+                np.array([p.ids[level] for p, level, _ in bad]),
+                np.stack([p.params[level] for p, level, _ in bad]),
+                np.array([reason] * len(bad), dtype=object),
+            )
+        )
+        counts["failed"] += len(bad)
+        log.warning("%d tactile readings failed (recorded under failures/): %s", len(bad), reason)
 
 
 def select_paths(
@@ -554,6 +615,7 @@ def generate_tactile_dataset(
     perturbation: ForearmPerturbation | Mapping | None = None,
     solver_options=None,
     barrier: bool = False,
+    stream: bool = False,
 ) -> dict:
     """Generate (or resume) one shard of the ``"poke"`` or ``"forearm"`` dataset of thesis §3.3.
 
@@ -569,6 +631,8 @@ def generate_tactile_dataset(
         max_step: largest indenter motion per load step [m].
         barrier: the poke paths of a batch wait for each other at every load step (default: each goes on
             as soon as it reached the step; the same readings, :meth:`MembraneSimulator.indent_series`).
+        stream: the poke paths flow through the batch (:func:`generate_tactile_shard`), a problem taking the
+            next path as soon as it has finished one, instead of batches that end with their slowest path.
         repeats: passes over the forearm grid (thesis: 5, the original and 4 repeats); repeats 1, 2, ...
             re-place the forearm by ``perturbation`` (:class:`ForearmPerturbation` or its config
             mapping; None = its defaults). Poking has no repeats (``repeats`` must be 1).
@@ -629,7 +693,9 @@ def generate_tactile_dataset(
         config_yaml=config_text,
         store_points=store_points,
     )
-    counts = generate_tactile_shard(sim, paths, writer, max_step=max_step, progress=progress, barrier=barrier)
+    counts = generate_tactile_shard(
+        sim, paths, writer, max_step=max_step, progress=progress, barrier=barrier, stream=stream
+    )
     writer.finalize()
     counts.update(path=str(out_path), seconds=time.perf_counter() - t0, solver_options=sim.solver.options)
     return counts
@@ -670,6 +736,7 @@ def generate_tactile_from_config(cfg: Mapping, out_path=None, config_text: str =
         shard_count=cfg["shard_count"],
         max_step=cfg["max_step"],
         barrier=cfg["barrier"],
+        stream=cfg["stream"],
         intrinsics=PICO_FLEXX.scaled(cfg["camera_scale"]),
         store_points=cfg["store_points"],
         config_text=config_text,

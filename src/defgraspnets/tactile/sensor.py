@@ -78,12 +78,18 @@ def exact_linear_solver(device) -> str:
     """The exact linear solver of the membrane on ``device``: block-tridiagonal Cholesky on the CPU
     (the thin shell's breadth-first levels are narrow rings; 2-core CPU, 8 poke paths of the default
     benchmark: 229 s against 317 s with SuperLU, a pole poke on the 3747-vertex membrane 18 s against
-    38 s, the same wrenches), batched dense Cholesky on the GPU (one H100: the poke benchmark's 64 paths
-    on cap 8 take 102.1 s dense and 104.4 s banded; 4 fingertip paths on cap 16 67.7 and 67.3 s)."""
+    38 s, the same wrenches), and on the GPU ``dense_banded``: the batched block-tridiagonal Cholesky
+    when at least 12 problems need a factorization, one dense Cholesky per problem when fewer do (the
+    banded solver's fixed cost per call is ~3x a dense factorization's on small batches). Measured on one
+    H100 (192 poke paths of the grid, cap 8, 20 mm sphere, 960 states): in batches of 64 paths 264.0 s
+    dense, 229.9 s banded; streamed through 64 problems (:meth:`MembraneSimulator.indent_stream`, the
+    batch stays full) 232.9 s dense, 164.8 s banded. (Before the load steps ran without a barrier, in
+    lockstep, dense and banded tied: 102.1 and 104.4 s for 64 paths.) ``dense_banded`` itself was not
+    timed on the membrane; its switch point comes from the FEM box (``benchmark_fem.py``)."""
     import warp as wp
 
     wp.init()
-    return "dense" if wp.get_device(device).is_cuda else "banded"
+    return "dense_banded" if wp.get_device(device).is_cuda else "banded"
 
 
 def membrane_solver_options(device=None, **overrides) -> fem.SolverOptions:
@@ -274,18 +280,24 @@ class MembraneSimulator:
         body = fem.RigidBody(
             "indenter", shape, control=fem.Control.displacement((0.0, 0.0, 1.0)), friction=float(friction)
         )
-        self.solver = fem.QuasiStaticSolver(
-            sensor.mesh,
-            [body],
-            sensor.material,
-            batch_size=self.batch_size,
-            device=device,
-            fixed=sensor.clamped_vertices,
-            options=options or membrane_solver_options(device),
-            pressure_surface=fem.PressureSurface(
-                sensor.inner_faces, sensor.rim_center, external_volume=dims.housing_volume
-            ),
-        )
+
+        def build_solver(batch_size: int) -> fem.QuasiStaticSolver:
+            return fem.QuasiStaticSolver(
+                sensor.mesh,
+                [body],
+                sensor.material,
+                batch_size=batch_size,
+                device=device,
+                fixed=sensor.clamped_vertices,
+                options=options or membrane_solver_options(device),
+                pressure_surface=fem.PressureSurface(
+                    sensor.inner_faces, sensor.rim_center, external_volume=dims.housing_volume
+                ),
+            )
+
+        self._build_solver = build_solver
+        self._inflated_template: fem.QuasiStaticSolver | None = None  # one inflated problem (indent_stream)
+        self.solver = build_solver(self.batch_size)
         # the camera ray-casts on the solver's device (the deformed surface is already there)
         self.camera = None if intrinsics is None else DepthCamera(intrinsics, device=self.solver.device)
         self._inflation_steps = int(inflation_steps)
@@ -310,11 +322,20 @@ class MembraneSimulator:
 
     def _inflate(self) -> TactileReading:
         """Inflate from the neutral (free-air) membrane to the gas state, indenters far away."""
-        s = self.solver
-        s.reset()
-        s.set_body_pose("indenter", self._idle_poses())
         t0 = time.perf_counter()
-        law = self.pressure_load.arrays(self.batch_size)
+        eq = self._inflate_solver(self.solver)
+        #: the FEM equilibrium of the inflated membrane (all problems)
+        self.inflated = eq
+        idle = self._idle_poses()
+        return self._readings(
+            eq, np.zeros(self.batch_size), idle, idle[:, :3, :3], time.perf_counter() - t0, 1
+        )[0]
+
+    def _inflate_solver(self, s: fem.QuasiStaticSolver) -> fem.Equilibrium:
+        """Inflate the problems of ``s`` from the neutral membrane to the gas state, indenters far away."""
+        s.reset()
+        s.set_body_pose("indenter", self._idle_poses()[: s.batch_size])
+        law = self.pressure_load.arrays(s.batch_size)
         for k in range(1, self._inflation_steps + 1):
             frac = k / self._inflation_steps
             eq = s.solve(
@@ -326,12 +347,15 @@ class MembraneSimulator:
                 f"inflation to {self.gas!r} ({'closed' if self.closed else 'open'}) did not converge: "
                 f"{fem.SolveStatus(int(eq.status[0])).name}"
             )
-        #: the FEM equilibrium of the inflated membrane (all problems)
-        self.inflated = eq
-        idle = self._idle_poses()
-        return self._readings(
-            eq, np.zeros(self.batch_size), idle, idle[:, :3, :3], time.perf_counter() - t0, 1
-        )[0]
+        return eq
+
+    def _template(self) -> fem.QuasiStaticSolver:
+        """One problem inflated exactly as each problem of :attr:`solver` was (built on first use)."""
+        if self._inflated_template is None:
+            template = self._build_solver(1)
+            self._inflate_solver(template)
+            self._inflated_template = template
+        return self._inflated_template
 
     # ------------------------------------------------------------------ indentation geometry
     def onset_travel(self, indentation: Indentation) -> float:
@@ -417,13 +441,24 @@ class MembraneSimulator:
         frames = self._idle_poses()
         rotations = np.broadcast_to(np.eye(3), (self.batch_size, 3, 3)).copy()
         for b, item in enumerate(items):
-            t0 = self.onset_travel(item)
-            start = Pose(item.pose.position + t0 * np.asarray(item.direction), item.pose.quaternion)
-            final = Pose(start.position + item.depth * np.asarray(item.direction), item.pose.quaternion)
-            check_workspace(self.indenter.with_pose(final), self.sensor.dimensions)
-            frames[b] = self._body_frame(Indentation(start, item.depth, item.direction))
-            rotations[b] = item.pose.rotation.as_matrix()
+            frames[b], rotations[b] = self.path_frame(item)
         return items, frames, rotations
+
+    def path_frame(self, item: Indentation) -> tuple[np.ndarray, np.ndarray]:
+        """The FEM body frame (4, 4) of an indentation at contact onset and the indenter's rotation (3, 3).
+
+        Raises:
+            WorkspaceError: the indenter would reach below the clamped rim plane, or never meets the
+                membrane; IndenterError: the direction does not suit the indenter's shape.
+        """
+        if not isinstance(item, Indentation):
+            raise TypeError(f"indentations must be Indentation instances, got {type(item).__name__}")
+        t0 = self.onset_travel(item)
+        start = Pose(item.pose.position + t0 * np.asarray(item.direction), item.pose.quaternion)
+        final = Pose(start.position + item.depth * np.asarray(item.direction), item.pose.quaternion)
+        check_workspace(self.indenter.with_pose(final), self.sensor.dimensions)
+        frame = self._body_frame(Indentation(start, item.depth, item.direction))
+        return frame, item.pose.rotation.as_matrix()
 
     @staticmethod
     def _push_steps(depth: np.ndarray, pushed: np.ndarray, max_step: float) -> list[dict]:
@@ -552,6 +587,119 @@ class MembraneSimulator:
         finally:
             self._withdraw()
         return out
+
+    def indent_stream(
+        self,
+        indentations,
+        levels,
+        on_readings,
+        render: bool = True,
+        max_step: float = 0.002,
+        friction=None,
+        progress: bool = False,
+    ) -> None:
+        """Indent any number of paths, B at a time, each problem taking the next path as soon as it has
+        finished one (:meth:`fem.QuasiStaticSolver.solve_stream`): a data set's hard paths no longer hold
+        up a whole batch while the rest of it idles.
+
+        Each path starts from the inflated membrane (an exact copy of the inflated state) with its
+        indenter at contact onset and is pushed along its direction in load steps of at most ``max_step``
+        [m], read at the fractions ``levels`` of its depth, as a batch of one path in :meth:`indent_series`
+        would (same readings; in a batch of several paths :meth:`indent_series` gives every path the step
+        count of the longest push, so its readings differ by the solver tolerance). Afterwards every
+        problem is back at the inflated state.
+
+        Args:
+            indentations: the paths (:class:`Indentation`), any number.
+            levels: increasing fractions in (0, 1] of each path's depth at which it is read: one sequence
+                for all paths, or one per path.
+            on_readings: ``on_readings(i, readings)`` once path i is done, with one
+                :class:`TactileReading` per level (``converged = False`` from the level where it failed:
+                no equilibrium, or the indenter lost contact); ``solve_time`` is the wall time from the
+                path's start to the reading.
+            friction: per-path Coulomb coefficients (default: the simulator's).
+            progress: a progress bar over the paths.
+
+        Raises:
+            WorkspaceError, IndenterError: a path does not suit the sensor or the indenter (checked for every
+                path before any is solved: :meth:`path_frame`).
+        """
+        items = list(indentations)
+        n = len(items)
+        per_path = np.ndim(levels[0]) > 0 if len(levels) else False
+        if per_path and len(levels) != n:
+            raise ValueError(f"give one sequence of levels per path: {n} paths, {len(levels)} sequences")
+        fractions = [
+            np.asarray(levels[i] if per_path else levels, dtype=np.float64).ravel() for i in range(n)
+        ]
+        for f in fractions:
+            if len(f) == 0 or np.any(np.diff(f) <= 0) or f[0] <= 0 or f[-1] > 1 + 1e-12:
+                raise ValueError(f"levels must increase within (0, 1], got {f.tolist()}")
+        if not max_step > 0:
+            raise ValueError(f"max_step must be > 0 m, got {max_step!r}")
+        base = float(next(b.friction for b in self.solver.bodies if b.name == "indenter"))
+        mu = np.full(n, base) if friction is None else np.asarray(friction, dtype=np.float64).ravel()
+        if mu.shape != (n,) or not np.all(np.isfinite(mu)) or np.any(mu < 0):
+            raise ValueError(f"friction must hold {n} finite coefficients >= 0, got {friction!r}")
+        frames, rotations = np.zeros((n, 4, 4)), np.zeros((n, 3, 3))
+        for i, item in enumerate(items):
+            frames[i], rotations[i] = self.path_frame(item)
+        depth = np.array([item.depth for item in items])
+        jobs, reading_steps = [], []
+        for i in range(n):  # the load steps of each reading level, as _push (one path's step count)
+            steps, at, pushed = [], {}, np.zeros(1)
+            for k, level in enumerate(fractions[i]):
+                target = np.array([level * depth[i]])
+                steps += [
+                    {"indenter": float(t["indenter"][0])} for t in self._push_steps(target, pushed, max_step)
+                ]
+                at[len(steps) - 1] = k
+                pushed = target
+            jobs.append(steps)
+            reading_steps.append(at)
+        template = self._template()
+        solver = self.solver
+        begun = np.zeros(n)
+        readings: dict[int, dict[int, TactileReading]] = {}
+
+        def start(problems, ids):
+            solver.copy_state_from(template, rows=np.zeros(len(problems), dtype=np.int64), into=problems)
+            solver.set_body_pose("indenter", frames[ids], rows=problems)
+            if np.any(mu[ids] != base):
+                coefficients = solver._friction[:, 0].copy()
+                coefficients[problems] = mu[ids]
+                solver.set_friction("indenter", coefficients)
+            begun[ids] = time.perf_counter()
+
+        def on_levels(ids, steps, part):
+            now = time.perf_counter()
+            for r, (i, step) in enumerate(zip(ids.tolist(), steps.tolist())):
+                k = reading_steps[i].get(step)
+                if k is None:
+                    continue
+                row = np.array([r])
+                (reading,) = self._readings(
+                    part.take(row), fractions[i][k] * depth[i : i + 1], frames[i : i + 1],
+                    rotations[i : i + 1], now - begun[i], 1, render,
+                )  # fmt: skip
+                got = readings.setdefault(i, {})
+                got[k] = reading
+                if len(got) == len(fractions[i]):
+                    on_readings(i, [got[j] for j in range(len(fractions[i]))])
+                    del readings[i]
+
+        def lost_contact(ids, _steps, part):
+            lost = self._lost_contact(part, depth[ids] > 0)
+            return np.where(lost, fem.SolveStatus.ESCAPED, fem.SolveStatus.CONVERGED)
+
+        try:
+            solver.solve_stream(jobs, start, on_levels, check=lost_contact, progress=progress)
+        finally:  # every problem back at the inflated state, with the simulator's friction
+            B = self.batch_size
+            solver.copy_state_from(template, rows=np.zeros(B, dtype=np.int64))
+            solver.set_friction("indenter", base)
+        if readings:  # cannot happen: solve_stream reports every level of every job
+            raise RuntimeError(f"indent_stream left paths {sorted(readings)} incomplete")
 
     def press_and_move(
         self,
