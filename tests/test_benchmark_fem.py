@@ -115,3 +115,32 @@ def test_benchmark_fem_names_a_misspelled_key(tmp_path):
     run = _run(tmp_path, "+solver.friction_stick_slipp=0.01")  # a SolverOptions field, misspelled
     assert run.returncode != 0
     assert "friction_stick_slipp" in run.stderr
+
+
+def test_the_newton_pass_log_counts_the_passes_of_a_benchmark(tmp_path):
+    """scripts/newton_pass_log.py around a tiny benchmark: at least the passes the benchmark counts; the
+    problem-passes lie between the passes and the slot-passes; the buckets add up."""
+    log = tmp_path / "passes.json"
+    cmd = [
+        sys.executable,
+        str(ROOT / "scripts" / "newton_pass_log.py"),
+        str(log),
+        str(SCRIPT),
+        "progress=false",
+        f"out={tmp_path / 'fem.json'}",
+        "object.size=[0.03,0.03,0.03]",
+        "object.divisions=[3,3,3]",
+        "num_grasps=2",
+        "steps=3",
+        "youngs_modulus=1e6",
+        "linear_solver=dense",
+    ]
+    run = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    passes, record = json.loads(log.read_text()), json.loads((tmp_path / "fem.json").read_text())
+    # the benchmark times a warm-up ramp and the measured one; its own counter covers the measured one
+    assert passes["passes"] >= record["newton_passes"] > 0
+    assert passes["passes"] <= passes["problem_passes"] <= passes["slot_passes"] == 2 * passes["passes"]
+    assert passes["passes_working_le_1"] <= passes["passes_working_le_2"] == passes["passes"]
+    assert 0 < passes["seconds_working_le_32"] == passes["pass_seconds"]
+    assert "benchmark_fem.py" in passes["command"]
