@@ -72,6 +72,20 @@ def pad_squeeze_solver(offsets, **options):
     return solver
 
 
+def assert_same_squeeze(a, b) -> None:
+    """Two equilibria of pad squeezes (:func:`pad_squeeze_solver`) are the same bit for bit: statuses,
+    load fractions, iterations, residuals, displacements, von Mises stresses, grip travel and force, and
+    the pads' friction forces."""
+    np.testing.assert_array_equal(b.status, a.status)
+    for name in ("load_fraction", "newton_iterations", "linear_iterations", "residual", "displacement"):
+        np.testing.assert_array_equal(getattr(b, name), getattr(a, name), err_msg=name)
+    np.testing.assert_array_equal(b.von_mises, a.von_mises)
+    np.testing.assert_array_equal(b.travel["grip"], a.travel["grip"])
+    np.testing.assert_array_equal(b.dof_force["grip"], a.dof_force["grip"])
+    for body in ("left", "right"):
+        np.testing.assert_array_equal(b.contact_friction_force[body], a.contact_friction_force[body])
+
+
 def gmsh_tet_mesh(build, size_field: str, name: str):
     """Tet mesh from a gmsh OCC geometry built by ``build(occ)`` with a MathEval size field [m]."""
     import gmsh

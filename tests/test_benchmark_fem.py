@@ -24,15 +24,21 @@ def _run(tmp_path, *overrides):
     return subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, timeout=600)
 
 
+#: a tiny benchmark: two grasps of a 64-vertex cube, three force steps
+TINY = (
+    "object.size=[0.03,0.03,0.03]",
+    "object.divisions=[3,3,3]",
+    "num_grasps=2",
+    "steps=3",
+    "youngs_modulus=1e6",
+    "linear_solver=dense",
+)
+
+
 def test_benchmark_fem_writes_per_step_and_per_grasp_records(tmp_path):
     run = _run(
         tmp_path,
-        "object.size=[0.03,0.03,0.03]",
-        "object.divisions=[3,3,3]",
-        "num_grasps=2",
-        "steps=3",
-        "youngs_modulus=1e6",
-        "linear_solver=dense",
+        *TINY,
         "profile_phases=true",
         "contact_smoothing=0.005",
         "+solver.friction_stick_slip=0.01",
@@ -128,12 +134,7 @@ def test_the_newton_pass_log_counts_the_passes_of_a_benchmark(tmp_path):
         str(SCRIPT),
         "progress=false",
         f"out={tmp_path / 'fem.json'}",
-        "object.size=[0.03,0.03,0.03]",
-        "object.divisions=[3,3,3]",
-        "num_grasps=2",
-        "steps=3",
-        "youngs_modulus=1e6",
-        "linear_solver=dense",
+        *TINY,
     ]
     run = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, timeout=600)
     assert run.returncode == 0, run.stderr[-2000:]
