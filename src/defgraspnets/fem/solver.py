@@ -356,11 +356,14 @@ def pinched_vertices(normal_force: np.ndarray, normal: np.ndarray, max_cosine: f
     return out
 
 
-def _problem_rows(rows, name: str) -> np.ndarray:
-    """``rows`` as a 1-D int64 array of problem indices (checked)."""
+def _problem_rows(rows, name: str, batch_size: int, batch: str = "") -> np.ndarray:
+    """``rows`` as a 1-D int64 array of indices of a batch of ``batch_size`` problems (checked; ``batch``
+    names that batch in the message)."""
     rows = np.asarray(rows)
     if rows.ndim != 1 or not (rows.size == 0 or np.issubdtype(rows.dtype, np.integer)):
         raise ValueError(f"{name} must be a 1-D integer array, got dtype {rows.dtype} shape {rows.shape}")
+    if rows.size and (rows.min() < 0 or rows.max() >= batch_size):
+        raise ValueError(f"{name} must lie in [0, {batch_size}){batch}, got {rows.min()}..{rows.max()}")
     return rows.astype(np.int64)
 
 
@@ -821,9 +824,7 @@ class QuasiStaticSolver:
             self._stick_stretch.zero_()
             self.system.forget_factors()
             return
-        rows = _problem_rows(rows, "rows")
-        if rows.size and (rows.min() < 0 or rows.max() >= self.batch_size):
-            raise ValueError(f"rows must lie in [0, {self.batch_size}), got {rows.min()}..{rows.max()}")
+        rows = _problem_rows(rows, "rows", self.batch_size)
         self._poses[rows, k] = np.broadcast_to(T, (len(rows), 4, 4))
         mask = np.zeros(self.batch_size, dtype=bool)
         mask[rows] = True
@@ -941,7 +942,7 @@ class QuasiStaticSolver:
         if not isinstance(other, QuasiStaticSolver):
             raise TypeError(f"other must be a QuasiStaticSolver, got {type(other).__name__}")
         B, Bo = self.batch_size, other.batch_size
-        rows = _problem_rows(rows, "rows")
+        rows = _problem_rows(rows, "rows", Bo, " (other's batch)")
         if into is None:
             if len(rows) != B:
                 raise ValueError(
@@ -949,15 +950,11 @@ class QuasiStaticSolver:
                 )
             into = np.arange(B)
         else:
-            into = _problem_rows(into, "into")
+            into = _problem_rows(into, "into", B, " (this batch)")
             if len(into) != len(rows):
                 raise ValueError(f"into names {len(into)} problems for {len(rows)} rows")
             if len(np.unique(into)) != len(into):
                 raise ValueError("into must name distinct problems")
-            if into.size and (into.min() < 0 or into.max() >= B):
-                raise ValueError(f"into must lie in [0, {B}) (this batch), got {into.min()}..{into.max()}")
-        if rows.size and (rows.min() < 0 or rows.max() >= Bo):
-            raise ValueError(f"rows must lie in [0, {Bo}) (other's batch), got {rows.min()}..{rows.max()}")
         self._check_compatible(other)
         if not rows.size:
             return
