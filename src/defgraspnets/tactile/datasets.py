@@ -420,7 +420,6 @@ def generate_tactile_shard(
         bar = tqdm(
             total=sum(len(p.ids) for p in todo), desc=f"tactile {writer.attrs['experiment']}", unit="state"
         )
-    failed_reason = "no equilibrium, or the indenter lost contact (mesh too coarse for the indenter)"
     for group in by_kind.values():
         if stream and group[0].motions is None:
             _stream_paths(simulator(group[0].radius_scale), group, writer, kind, max_step, counts, bar)
@@ -440,16 +439,24 @@ def generate_tactile_shard(
                 _write_outcome(writer, kind, _failed_path(batch[0]), f"workspace: {error}", counts)
             else:
                 outcome = [
-                    (batch[b], level, r if r.converged and r.depth is not None else None)
+                    (batch[b], level, _usable(r))
                     for level, per_item in enumerate(readings)
                     for b, r in enumerate(per_item)
                 ]
-                _write_outcome(writer, kind, outcome, failed_reason, counts)
+                _write_outcome(writer, kind, outcome, _FAILED_READING, counts)
             if bar is not None:
                 bar.update(sum(len(p.ids) for p in batch))
     if bar is not None:
         bar.close()
     return counts
+
+
+_FAILED_READING = "no equilibrium, or the indenter lost contact (mesh too coarse for the indenter)"
+
+
+def _usable(reading):
+    """The reading if it is an answer (converged, rendered), else None (a failure)."""
+    return reading if reading.converged and reading.depth is not None else None
 
 
 def _failed_path(path: TactilePath) -> list[tuple]:
@@ -460,7 +467,6 @@ def _stream_paths(sim, group, writer, kind, max_step, counts, bar) -> None:
     """Indentation paths of one kind through :meth:`MembraneSimulator.indent_stream`; every
     ``sim.batch_size`` finished paths are written as one part (those that do not suit the workspace are
     recorded as failures first)."""
-    failed_reason = "no equilibrium, or the indenter lost contact (mesh too coarse for the indenter)"
     valid = []
     for p in group:
         try:
@@ -478,12 +484,10 @@ def _stream_paths(sim, group, writer, kind, max_step, counts, bar) -> None:
 
     def on_readings(i, readings):
         p = valid[i]
-        pending.extend(
-            (p, level, r if r.converged and r.depth is not None else None) for level, r in enumerate(readings)
-        )
+        pending.extend((p, level, _usable(r)) for level, r in enumerate(readings))
         finished[0] += 1
         if finished[0] % sim.batch_size == 0:
-            _write_outcome(writer, kind, pending, failed_reason, counts)
+            _write_outcome(writer, kind, pending, _FAILED_READING, counts)
             pending.clear()
         if bar is not None:
             bar.update(len(p.ids))
@@ -498,7 +502,7 @@ def _stream_paths(sim, group, writer, kind, max_step, counts, bar) -> None:
         friction=[base + p.friction_offset for p in valid],
     )
     if pending:
-        _write_outcome(writer, kind, pending, failed_reason, counts)
+        _write_outcome(writer, kind, pending, _FAILED_READING, counts)
 
 
 def _write_outcome(
