@@ -129,13 +129,13 @@ def test_a_stream_of_paths_through_a_smaller_batch_reads_as_each_path_alone(sens
     """indent_stream pushes three paths through two problems (the third starts where the first finished):
     each path's readings are those of a one-path batch, and the membrane is left at its inflated state."""
 
-    def simulator(batch_size):
+    def simulator(batch_size, friction=0.5):
         return MembraneSimulator(
             sensor,
             SPHERE,
             _gas(sensor),
             batch_size=batch_size,
-            friction=0.5,
+            friction=friction,
             intrinsics=PICO_FLEXX.scaled(0.25),
         )
 
@@ -163,6 +163,12 @@ def test_a_stream_of_paths_through_a_smaller_batch_reads_as_each_path_alone(sens
             np.testing.assert_array_equal(b.depth.depth, a.depth.depth)
             assert b.depth_travel == a.depth_travel
             np.testing.assert_array_equal(b.indenter_pose.to_array(), a.indenter_pose.to_array())
+    # per-path friction: the third path starts on a problem whose last path had the same coefficient
+    low = {}
+    sim.indent_stream(paths, [1.0], lambda i, readings: low.__setitem__(i, readings[0]), friction=[0.2] * 3)
+    expected = simulator(1, friction=0.2).indent_series([paths[2]], [1.0])[0][0]
+    np.testing.assert_array_equal(low[2].base_wrench, expected.base_wrench)
+    assert not np.array_equal(low[0].base_wrench, got[0][1].base_wrench)  # the tilted poke slides
     # back at the inflated state: the next poke reads as on a fresh simulator
     again = sim.indent_series([paths[1]], [1.0])[0][0]
     np.testing.assert_array_equal(

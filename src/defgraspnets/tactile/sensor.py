@@ -659,14 +659,15 @@ class MembraneSimulator:
             reading_steps.append(at)
         template = self._template()
         solver = self.solver
+        coefficients = np.full(self.batch_size, base)  # each problem's friction, that of its path
         begun = np.zeros(n)
         readings: dict[int, dict[int, TactileReading]] = {}
 
         def start(problems, ids):
             solver.copy_state_from(template, rows=np.zeros(len(problems), dtype=np.int64), into=problems)
             solver.set_body_pose("indenter", frames[ids], rows=problems)
+            coefficients[problems] = base  # the template's
             if np.any(mu[ids] != base):
-                coefficients = solver._friction[:, 0].copy()
                 coefficients[problems] = mu[ids]
                 solver.set_friction("indenter", coefficients)
             begun[ids] = time.perf_counter()
