@@ -163,9 +163,19 @@ def test_a_stream_of_paths_through_a_smaller_batch_reads_as_each_path_alone(sens
             np.testing.assert_array_equal(b.depth.depth, a.depth.depth)
             assert b.depth_travel == a.depth_travel
             np.testing.assert_array_equal(b.indenter_pose.to_array(), a.indenter_pose.to_array())
-    # per-path friction: the third path starts on a problem whose last path had the same coefficient
-    low = {}
-    sim.indent_stream(paths, [1.0], lambda i, readings: low.__setitem__(i, readings[0]), friction=[0.2] * 3)
+    # per-path friction: the third path starts on a problem whose last path had the same coefficient;
+    # a path that never meets the membrane is handed to on_invalid and the others go on
+    low, invalid = {}, []
+    away = Indentation(Pose([0.3, 0.0, 0.16]), 0.004, (1.0, 0.0, 0.0))  # beside the sensor, moving off
+    sim.indent_stream(
+        [paths[0], away, paths[1], paths[2]],
+        [1.0],
+        lambda i, readings: low.__setitem__(i, readings[0]),
+        friction=[0.2] * 4,
+        on_invalid=lambda i, error: invalid.append((i, type(error))),
+    )
+    assert invalid == [(1, WorkspaceError)] and sorted(low) == [0, 2, 3]
+    low = {0: low[0], 1: low[2], 2: low[3]}
     expected = simulator(1, friction=0.2).indent_series([paths[2]], [1.0])[0][0]
     np.testing.assert_array_equal(low[2].base_wrench, expected.base_wrench)
     assert not np.array_equal(low[0].base_wrench, got[0][1].base_wrench)  # the tilted poke slides
@@ -178,6 +188,8 @@ def test_a_stream_of_paths_through_a_smaller_batch_reads_as_each_path_alone(sens
         sim.indent_stream(paths, [[1.0], [1.0]], on_readings)
     with pytest.raises(ValueError, match="friction must hold 3"):
         sim.indent_stream(paths, [1.0], on_readings, friction=[0.5])
+    with pytest.raises(WorkspaceError, match="never touches"):
+        sim.indent_stream([away], [1.0], on_readings)
 
 
 def test_closed_capsule_is_stiffer_than_open(sensor, open_sim):

@@ -466,24 +466,17 @@ def _failed_path(path: TactilePath) -> list[tuple]:
 def _stream_paths(sim, group, writer, kind, max_step, counts, bar) -> None:
     """Indentation paths of one kind through :meth:`MembraneSimulator.indent_stream`; every
     ``sim.batch_size`` finished paths are written as one part (those that do not suit the workspace are
-    recorded as failures first)."""
-    valid = []
-    for p in group:
-        try:
-            sim.path_frame(p.indentation)
-        except IndenterError as error:
-            _write_outcome(writer, kind, _failed_path(p), f"workspace: {error}", counts)
-            if bar is not None:
-                bar.update(len(p.ids))
-        else:
-            valid.append(p)
-    if not valid:
-        return
+    recorded as failures, as they are found)."""
     pending: list[tuple] = []
     finished = [0]
 
+    def on_invalid(i, error):
+        _write_outcome(writer, kind, _failed_path(group[i]), f"workspace: {error}", counts)
+        if bar is not None:
+            bar.update(len(group[i].ids))
+
     def on_readings(i, readings):
-        p = valid[i]
+        p = group[i]
         pending.extend((p, level, _usable(r)) for level, r in enumerate(readings))
         finished[0] += 1
         if finished[0] % sim.batch_size == 0:
@@ -494,12 +487,13 @@ def _stream_paths(sim, group, writer, kind, max_step, counts, bar) -> None:
 
     base = _base_friction(sim)
     sim.indent_stream(
-        [p.indentation for p in valid],
-        [p.levels for p in valid],
+        [p.indentation for p in group],
+        [p.levels for p in group],
         on_readings,
         render=True,
         max_step=max_step,
-        friction=[base + p.friction_offset for p in valid],
+        friction=[base + p.friction_offset for p in group],
+        on_invalid=on_invalid,
     )
     if pending:
         _write_outcome(writer, kind, pending, _FAILED_READING, counts)

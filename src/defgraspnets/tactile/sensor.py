@@ -597,6 +597,7 @@ class MembraneSimulator:
         max_step: float = 0.002,
         friction=None,
         progress: bool = False,
+        on_invalid=None,
     ) -> None:
         """Indent any number of paths, B at a time, each problem taking the next path as soon as it has
         finished one (:meth:`fem.QuasiStaticSolver.solve_stream`): a data set's hard paths no longer hold
@@ -619,10 +620,12 @@ class MembraneSimulator:
                 path's start to the reading.
             friction: per-path Coulomb coefficients (default: the simulator's).
             progress: a progress bar over the paths.
+            on_invalid: ``on_invalid(i, error)`` for each path that does not suit the sensor or the
+                indenter (:meth:`path_frame` raised ``error``); those paths are skipped. None: raise.
 
         Raises:
             WorkspaceError, IndenterError: a path does not suit the sensor or the indenter (checked for every
-                path before any is solved: :meth:`path_frame`).
+                path before any is solved: :meth:`path_frame`), unless ``on_invalid`` takes it.
         """
         items = list(indentations)
         n = len(items)
@@ -642,11 +645,20 @@ class MembraneSimulator:
         if mu.shape != (n,) or not np.all(np.isfinite(mu)) or np.any(mu < 0):
             raise ValueError(f"friction must hold {n} finite coefficients >= 0, got {friction!r}")
         frames, rotations = np.zeros((n, 4, 4)), np.zeros((n, 3, 3))
+        valid = []  # the paths to solve (job j is path valid[j])
         for i, item in enumerate(items):
-            frames[i], rotations[i] = self.path_frame(item)
+            try:
+                frames[i], rotations[i] = self.path_frame(item)
+            except IndenterError as error:
+                if on_invalid is None:
+                    raise
+                on_invalid(i, error)
+            else:
+                valid.append(i)
         depth = np.array([item.depth for item in items])
+        path_of = np.array(valid, dtype=np.int64)  # job j of the stream is path path_of[j]
         jobs, reading_steps = [], []
-        for i in range(n):  # the load steps of each reading level, as _push (one path's step count)
+        for i in valid:  # the load steps of each reading level, as _push (one path's step count)
             steps, at, pushed = [], {}, np.zeros(1)
             for k, level in enumerate(fractions[i]):
                 target = np.array([level * depth[i]])
@@ -663,7 +675,8 @@ class MembraneSimulator:
         begun = np.zeros(n)
         readings: dict[int, dict[int, TactileReading]] = {}
 
-        def start(problems, ids):
+        def start(problems, jobs_started):
+            ids = path_of[jobs_started]
             solver.copy_state_from(template, rows=np.zeros(len(problems), dtype=np.int64), into=problems)
             solver.set_body_pose("indenter", frames[ids], rows=problems)
             coefficients[problems] = base  # the template's
@@ -672,10 +685,10 @@ class MembraneSimulator:
                 solver.set_friction("indenter", coefficients)
             begun[ids] = time.perf_counter()
 
-        def on_levels(ids, steps, part):
+        def on_levels(jobs_reached, steps, part):
             now = time.perf_counter()
-            for r, (i, step) in enumerate(zip(ids.tolist(), steps.tolist())):
-                k = reading_steps[i].get(step)
+            for r, (j, step) in enumerate(zip(jobs_reached.tolist(), steps.tolist())):
+                k, i = reading_steps[j].get(step), int(path_of[j])
                 if k is None:
                     continue
                 row = np.array([r])
@@ -689,8 +702,8 @@ class MembraneSimulator:
                     on_readings(i, [got[j] for j in range(len(fractions[i]))])
                     del readings[i]
 
-        def lost_contact(ids, _steps, part):
-            lost = self._lost_contact(part, depth[ids] > 0)
+        def lost_contact(jobs_reached, _steps, part):
+            lost = self._lost_contact(part, depth[path_of[jobs_reached]] > 0)
             return np.where(lost, fem.SolveStatus.ESCAPED, fem.SolveStatus.CONVERGED)
 
         try:
