@@ -5,6 +5,7 @@
     python datagen/grasps.py -m object=cuboid_30x30x30,ellipsoid_20x20x20,cylinder_r20_h40
     python datagen/grasps.py -m object=cuboid_50x50x50 shard_count=4 shard_index=0,1,2,3
     python datagen/grasps.py experiments=[pickup,reorientation,linear,angular]   # + DefGraspSim metrics
+    python datagen/grasps.py object=cuboid_50x50x50 num_grasps=100 device=cuda stream_slots=128
     python datagen/grasps.py object=/data/meshes/mug.vtu file_labels.category=cup   # any tet or surface mesh
 
 Config: configs/datagen/grasps.yaml (thesis-scale values in its comments). All logic lives in
@@ -72,6 +73,7 @@ def main(cfg: DictConfig) -> None:
         experiment_options=experiment_solver_options(linear_solver=cfg.experiment_linear_solver),
         directions_per_solver=cfg.experiment_directions_per_solver,
         moduli_per_solver=cfg.moduli_per_solver,
+        stream_slots=cfg.stream_slots,
     )
     for r in results:
         if r.skipped:

@@ -80,9 +80,9 @@ def test_resume_simulates_only_missing_grasps(tmp_path, monkeypatch):
     calls = []
     real = datagen._squeeze_modulus
 
-    def spy(mesh, grasps, *args, **kwargs):
+    def spy(ramps, grasps, material):
         calls.append(len(grasps))
-        return real(mesh, grasps, *args, **kwargs)
+        return real(ramps, grasps, material)
 
     monkeypatch.setattr(datagen, "_squeeze_modulus", spy)
 
@@ -120,11 +120,11 @@ def test_moduli_in_one_batch_give_the_same_data(data_dir, tmp_path, monkeypatch)
     calls = []
     real = datagen._squeeze_modulus
 
-    def spy(mesh, grasps, material, *args, **kwargs):
+    def spy(ramps, grasps, material):
         calls.append(
             (len(grasps), [m.youngs_modulus for m in material] if isinstance(material, list) else None)
         )
-        return real(mesh, grasps, material, *args, **kwargs)
+        return real(ramps, grasps, material)
 
     monkeypatch.setattr(datagen, "_squeeze_modulus", spy)
     (r,) = _generate(tmp_path, moduli_per_solver=2)
@@ -157,8 +157,8 @@ def test_rotations_per_axis_sets_how_many_grasps_share_contact_points(tmp_path, 
     thesis's 4 turn the approach about shared axes. The FEM is not what is tested here: skipped."""
     from defgraspnets.data.splits import grasp_axis_ids
 
-    def no_fem(mesh, grasps, material, friction, max_force, steps, *args, **kwargs):
-        G, N = len(grasps), mesh.num_vertices
+    def no_fem(ramps, grasps, material):
+        G, N, steps, max_force = len(grasps), ramps.mesh.num_vertices, ramps.steps, ramps.max_force
         return {
             "force": np.tile(np.linspace(max_force / steps, max_force, steps), (G, 1)),
             "von_mises": np.zeros((G, steps, N), dtype=np.float32),
@@ -187,6 +187,79 @@ def test_really_failing_solve_is_recorded(tmp_path):
     assert np.all(np.isnan(sh.fields(0, 0, 0)[0])) and np.isnan(sh.force[0, 0]).all()
 
 
+def _dense(**kw):
+    from defgraspnets.grasp.squeeze import squeeze_solver_options
+
+    return dict(solver_options=squeeze_solver_options(linear_solver="dense"), **kw)
+
+
+def test_streamed_ramps_give_the_same_data_bit_for_bit(tmp_path, monkeypatch):
+    """stream_slots=2: the shard's 6 ramps (2 moduli x 3 grasps) flow through 2 problems, each written when
+    done; with the exact dense solver every ramp is bit for bit the one of the per-modulus batches."""
+    (batched,) = _generate(tmp_path / "batched", **_dense())
+    monkeypatch.setattr(datagen, "_squeeze_modulus", None)  # the stream never builds batches
+    order = []
+    real_write = GraspShardWriter.write
+
+    def spy_write(self, k, g, *a, **kw):
+        order.append((k, g))
+        real_write(self, k, g, *a, **kw)
+
+    monkeypatch.setattr(GraspShardWriter, "write", spy_write)
+    (streamed,) = _generate(tmp_path / "streamed", **_dense(stream_slots=2))
+    assert sorted(order) == [(k, g) for k in range(2) for g in range(GRASPS)]
+    a, b = GraspShard(batched.path), GraspShard(streamed.path)
+    assert len(a.solved()) == 2 * GRASPS
+    np.testing.assert_array_equal(a.status, b.status)
+    for key in ("force", "finger_travel"):
+        np.testing.assert_array_equal(getattr(a, key), getattr(b, key))
+    for k, g in a.solved():
+        for s in range(STEPS):
+            for x, y in zip(a.fields(k, g, s), b.fields(k, g, s)):
+                np.testing.assert_array_equal(x, y)
+
+
+def test_a_killed_stream_resumes_with_the_unwritten_ramps(tmp_path, monkeypatch):
+    """A streamed generation killed after 4 of 6 ramps were written simulates only the other 2 when run
+    again, and ends with the shard an uninterrupted run writes."""
+
+    class Killed(Exception):
+        pass
+
+    real_write = GraspShardWriter.write
+    written = []
+
+    def write_then_die(self, k, g, *a, **kw):
+        real_write(self, k, g, *a, **kw)
+        written.append((k, g))
+        if len(written) == 4:
+            raise Killed
+
+    monkeypatch.setattr(GraspShardWriter, "write", write_then_die)
+    with pytest.raises(Killed):
+        _generate(tmp_path / "resumed", **_dense(stream_slots=2))
+    monkeypatch.setattr(GraspShardWriter, "write", real_write)
+    streamed = []
+    real_stream = datagen._squeeze_streamed
+
+    def spy(ramps, grasps, jobs, *args):
+        streamed.append(list(jobs))
+        return real_stream(ramps, grasps, jobs, *args)
+
+    monkeypatch.setattr(datagen, "_squeeze_streamed", spy)
+    (r,) = _generate(tmp_path / "resumed", **_dense(stream_slots=2))
+    assert len(streamed) == 1 and sorted(streamed[0]) == sorted(
+        set((k, g) for k in range(2) for g in range(GRASPS)) - set(written)
+    )
+    (whole,) = _generate(tmp_path / "whole", **_dense(stream_slots=2))
+    a, b = GraspShard(whole.path), GraspShard(r.path)
+    np.testing.assert_array_equal(a.status, b.status)
+    np.testing.assert_array_equal(a.force, b.force)
+    for k, g in a.solved():
+        for x, y in zip(a.fields(k, g, STEPS - 1), b.fields(k, g, STEPS - 1)):
+            np.testing.assert_array_equal(x, y)
+
+
 @pytest.mark.parametrize(
     "kw, match",
     [
@@ -199,6 +272,7 @@ def test_really_failing_solve_is_recorded(tmp_path):
         (dict(shard_count=2, shard_index=2), "shard_index"),
         (dict(material_model="hookean"), "material_model"),
         (dict(moduli_per_solver=0), "moduli_per_solver"),
+        (dict(stream_slots=-1), "stream_slots"),
     ],
 )
 def test_bad_input_raises(tmp_path, kw, match):

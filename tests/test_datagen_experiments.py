@@ -204,6 +204,21 @@ def test_killed_and_resumed_run_equals_an_uninterrupted_one(generated, tmp_path,
             np.testing.assert_array_equal(b[key], a[key], err_msg=key)
 
 
+def test_streamed_ramps_keep_the_experiments_of_the_batches(generated, tmp_path):
+    """stream_slots=1: the squeeze ramps run one after the other through one problem; the experiments still
+    run per modulus once its ramps are done, in the same batches, so they are the same bit for bit; the
+    ramps agree to 1e-9 (the default multigrid solver's tolerance is shared by its batch)."""
+    (streamed,) = _generate(tmp_path, stream_slots=1)
+    assert streamed.experiments == generated.experiments
+    a, b = _datasets(generated.path), _datasets(streamed.path)
+    assert a.keys() == b.keys()
+    for key in a:
+        if key.startswith("ramp/") and np.asarray(a[key]).dtype.kind == "f":
+            np.testing.assert_allclose(b[key], a[key], rtol=1e-9, atol=0, equal_nan=True, err_msg=key)
+        else:
+            np.testing.assert_array_equal(b[key], a[key], err_msg=key)
+
+
 # ---------------------------------------------------------------------------------------------- statuses
 def test_status_says_why_a_metric_is_nan(tmp_path, monkeypatch):
     """Grasp 1's squeeze to F_p finds no equilibrium (NOT_GRASPED: every metric and feature NaN, left out

@@ -12,11 +12,14 @@ FORCES = np.array([1.0, 2.0, 3.0, 1.5, 2.5])  # N: grip force at the last level
 STEPS = 3
 
 
-def _solver(offsets=OFFSETS) -> fem.QuasiStaticSolver:
-    """The off-centre pad squeeze of test_fem_solve_sequence, gripped at 20 % of its force under gravity."""
+def _solver(offsets=OFFSETS, materials=None, **options) -> fem.QuasiStaticSolver:
+    """The off-centre pad squeeze of test_fem_solve_sequence, gripped at 20 % of its force under gravity
+    (``materials``: one per problem; ``options``: SolverOptions fields)."""
     from fem_helpers import pad_squeeze_solver
 
-    solver = pad_squeeze_solver(offsets, linear_solver="dense")
+    solver = pad_squeeze_solver(offsets, linear_solver="dense", **options)
+    if materials is not None:
+        solver.set_material(materials)
     scale = FORCES[: len(offsets)]
     solver.solve(targets={"grip": 0.2 * scale}, body_load=fem.BodyLoad(gravity=(0.0, 0.0, -9.81)))
     return solver
@@ -36,12 +39,12 @@ def _assert_same(a: fem.Equilibrium, b: fem.Equilibrium) -> None:
     assert_same_squeeze(a, b)
 
 
-def _stream(batch_size: int, lengths, check=None):
+def _stream(batch_size: int, lengths, check=None, materials=None, **options):
     """Jobs j = 0..4 (job j: grasp j's levels, ``lengths[j]`` of them) through a ``batch_size`` batch whose
-    problems start each job from the gripped template problem j. Returns {(job, level): equilibrium},
-    the order of the reports and the (problem, job) starts."""
-    template = _solver()
-    solver = _solver(OFFSETS[:batch_size])
+    problems start each job from the gripped template problem j (``materials``: the template's, one per
+    job). Returns {(job, level): equilibrium}, the order of the reports and the (problem, job) starts."""
+    template = _solver(materials=materials, **options)
+    solver = _solver(OFFSETS[:batch_size], **options)
     got, order, starts = {}, [], []
 
     def start(problems, jobs):
@@ -73,6 +76,47 @@ def test_jobs_through_a_smaller_batch_reach_the_equilibria_of_one_sequence_per_j
     # two problems served five jobs: each new job went to a problem that had finished its last one
     assert [j for _, j in starts] == [0, 1, 2, 3, 4] and {b for b, _ in starts} == {0, 1}
     assert starts[:2] == [(0, 0), (1, 1)]
+
+
+# job j's material: moduli 2.5x apart, so a problem that takes the next job also changes its material
+MATERIALS = [fem.Material(e, 0.3, 1000.0) for e in (1e5, 2.5e5, 4e4, 1e5, 1.6e5)]
+
+
+def test_jobs_of_other_materials_stream_as_each_alone_with_released_stabilization():
+    """A problem that takes a job of another material mid-stream (copy_state_from sets its material row-wise)
+    solves it as that job alone, and the problems iterating beside it, some without their stabilization
+    springs (released), are not disturbed: bit for bit as one solve_sequence of the template."""
+    options = {"stabilization": 1e-3, "stabilization_release": True}
+    expected = _solver(materials=MATERIALS, **options).solve_sequence(
+        [{"grip": [lv[k]["grip"] for lv in map(_levels, range(5))]} for k in range(STEPS)]
+    )
+    # these lengths start jobs 2 and 3 while the other problem iterates without its springs
+    lengths = [2, 3, 1, 2, 1]
+    got, _, starts = _stream(2, lengths, materials=MATERIALS, **options)
+    for j, n in enumerate(lengths):
+        for k in range(n):
+            _assert_same(_row(expected[k], j), got[(j, k)])
+    assert len(starts) == 5 and all(got[(j, 0)].newton_iterations[0] > 0 for j in range(5))
+
+
+def test_a_row_wise_material_changes_only_those_problems():
+    """set_material(rows=...) equals setting every problem's material with the others' unchanged, and the
+    other problems solve as if it had not been called."""
+    soft = fem.Material(4e4, 0.35, 1000.0)
+    mats = [MATERIALS[0]] * 5
+    whole, rows, plain = _solver(), _solver(), _solver()
+    whole.set_material([soft if b in (1, 3) else m for b, m in enumerate(mats)])
+    rows.set_material(soft, rows=[1, 3])
+    assert rows.materials[1] is soft and rows.materials[0] == MATERIALS[0]
+    more = {"grip": FORCES}
+    a, b, c = whole.solve(targets=more), rows.solve(targets=more), plain.solve(targets=more)
+    _assert_same(a.take(np.array([1, 3])), b.take(np.array([1, 3])))
+    _assert_same(c.take(np.array([0, 2, 4])), b.take(np.array([0, 2, 4])))
+    assert not np.allclose(b.displacement[1], c.displacement[1])  # the softer box deforms more
+    with pytest.raises(ValueError, match="list of 2 \\(one per row\\) Materials"):
+        rows.set_material([soft], rows=[0, 1])
+    with pytest.raises(ValueError, match=r"rows must lie in \[0, 5\)"):
+        rows.set_material(soft, rows=[5])
 
 
 def test_a_flagged_job_reports_its_later_levels_and_frees_its_problem():

@@ -452,15 +452,13 @@ class _NewtonRun:
     damping: np.ndarray  # (B,) Levenberg-Marquardt factor of the exact Hessian
     stale_step: np.ndarray  # (B,) bool: chord Newton's last step came from a stale factor and was cut
     dof_targets: np.ndarray  # (B, D) |actuator force targets| (force scale of the tolerance)
-    atol: np.ndarray  # (B,) absolute residual tolerance [N]
     max_step: float  # largest vertex or travel move per Newton step [m]
     escape: float  # object motion within one increment that flags ESCAPED [m]
 
     @classmethod
-    def empty(cls, batch_size: int, num_dofs: int, relag_every, atol, max_step, escape) -> _NewtonRun:
+    def empty(cls, batch_size: int, num_dofs: int, relag_every, max_step, escape) -> _NewtonRun:
         B = batch_size
         return cls(
-            atol=atol,
             max_step=max_step,
             escape=escape,
             relag_every=relag_every,
@@ -766,36 +764,68 @@ class QuasiStaticSolver:
         self.reset()
 
     # ------------------------------------------------------------------ per-problem settings
-    def set_material(self, material) -> None:
-        """One :class:`Material` for all problems, or a sequence of B."""
-        mats = [material] * self.batch_size if isinstance(material, Material) else list(material)
-        if len(mats) != self.batch_size or not all(isinstance(m, Material) for m in mats):
-            raise ValueError(f"material must be a Material or a list of {self.batch_size} Materials")
-        self.materials = mats
+    def set_material(self, material, rows=None) -> None:
+        """One :class:`Material` for all problems, or a sequence of B.
+
+        ``rows``: only these problems (integer indices; ``material`` one Material or one per row) take the
+        new material, with their increment stabilization springs on and their factorizations dropped; the
+        other problems keep their materials, spring states, damping and factorizations (a problem of a
+        :meth:`solve_stream` may take a job of another material while the others iterate)."""
+        if rows is None:
+            rows = np.arange(self.batch_size)
+            whole = True
+        else:
+            rows = _problem_rows(rows, "rows", self.batch_size)
+            whole = False
+        mats = [material] * len(rows) if isinstance(material, Material) else list(material)
+        if len(mats) != len(rows) or not all(isinstance(m, Material) for m in mats):
+            what = f"{self.batch_size}" if whole else f"{len(rows)} (one per row)"
+            raise ValueError(f"material must be a Material or a list of {what} Materials")
+        if whole:
+            self.materials = mats
+        else:
+            self.materials = list(self.materials)
+            for r, m in zip(rows.tolist(), mats):
+                self.materials[r] = m
+        all_mats = self.materials
         dev = self.device
-        self._youngs_np = np.array([m.youngs_modulus for m in mats])
-        self._density_np = np.array([m.density for m in mats])
+        B, N, D = self.batch_size, self.mesh.num_vertices, self.num_dofs
+        self._youngs_np = np.array([m.youngs_modulus for m in all_mats])
+        self._density_np = np.array([m.density for m in all_mats])
         self._youngs = wp.array(self._youngs_np, dtype=wp.float64, device=dev)
-        self._mu = wp.array([m.shear_modulus for m in mats], dtype=wp.float64, device=dev)
-        self._lam = wp.array([m.lame_lambda for m in mats], dtype=wp.float64, device=dev)
-        self._model = wp.array([MATERIAL_MODELS.index(m.model) for m in mats], dtype=wp.int32, device=dev)
-        self._barrier = any(m.model == "neohookean" for m in mats)
-        N, D = self.mesh.num_vertices, self.num_dofs
-        shift = np.zeros((self.batch_size, self.rows_per_problem, 3))
-        scale = self.options.regularization * self._youngs_np[:, None] * self.mesh.vertex_size[None, :]
-        self._regularization_np = scale
-        shift[:, :N, :] = scale[:, :, None]
-        stab = self.options.stabilization * self._youngs_np[:, None] * self.mesh.vertex_size[None, :]
-        shift[:, :N, :] += stab[:, :, None]
-        self._stabilization = wp.array(stab.reshape(-1), dtype=wp.float64, device=dev)
-        self._stabilization_np = stab  # (B, N) spring constants [N/m], for _stabilize()
+        self._mu = wp.array([m.shear_modulus for m in all_mats], dtype=wp.float64, device=dev)
+        self._lam = wp.array([m.lame_lambda for m in all_mats], dtype=wp.float64, device=dev)
+        self._model = wp.array([MATERIAL_MODELS.index(m.model) for m in all_mats], dtype=wp.int32, device=dev)
+        self._barrier = any(m.model == "neohookean" for m in all_mats)
+        #: absolute Newton residual floor per problem [N] (1e-14 E h^2)
+        self._newton_atol = 1e-14 * self._youngs_np * self.mesh.diameter**2
+        E = self._youngs_np[rows]
+        scale = self.options.regularization * E[:, None] * self.mesh.vertex_size[None, :]
+        stab = self.options.stabilization * E[:, None] * self.mesh.vertex_size[None, :]
+        shift = np.zeros((len(rows), self.rows_per_problem, 3))
+        shift[:, :N, :] = (scale + stab)[:, :, None]
         if D:
-            shift[:, N:, 0] = self.options.regularization * self._youngs_np[:, None] * self.mesh.diameter
-        self._diag_shift = wp.array(shift.reshape(-1, 3), dtype=wp.vec3d, device=dev)
-        self._diag_shift_base = shift
-        self._damping_scale = np.zeros_like(shift)  # Levenberg-Marquardt unit per row: E h [N/m]
-        self._damping_scale[:, :N, :] = (self._youngs_np[:, None] * self.mesh.vertex_size[None])[..., None]
-        self.system.forget_factors()  # factorizations of the old materials' Hessians
+            shift[:, N:, 0] = self.options.regularization * E[:, None] * self.mesh.diameter
+        damping = np.zeros_like(shift)  # Levenberg-Marquardt unit per row: E h [N/m]
+        damping[:, :N, :] = (E[:, None] * self.mesh.vertex_size[None])[..., None]
+        if whole:
+            self._regularization_np = scale
+            self._stabilization_np = stab  # (B, N) spring constants [N/m], for _stabilize()
+            self._diag_shift_base = shift
+            self._damping_scale = damping
+            self._stabilization = wp.array(stab.reshape(-1), dtype=wp.float64, device=dev)
+            self._diag_shift = wp.array(shift.reshape(-1, 3), dtype=wp.vec3d, device=dev)
+            self.system.forget_factors()  # factorizations of the old materials' Hessians
+            return
+        self._regularization_np[rows] = scale
+        self._stabilization_np[rows] = stab
+        self._diag_shift_base[rows] = shift
+        self._damping_scale[rows] = damping
+        self._put_rows(self._stabilization, N, rows, stab)
+        self._put_rows(self._diag_shift, self.rows_per_problem, rows, shift)
+        mask = np.zeros(B, dtype=bool)
+        mask[rows] = True
+        self.system.forget_factors(mask)
 
     def _dof(self, name: str) -> int:
         if name not in self.dof_names:
@@ -832,6 +862,23 @@ class QuasiStaticSolver:
         self._commit_body_reference(mask)
         self._zero_rows(self._stick_stretch, self.num_surface * self.num_bodies, rows)
         self.system.forget_factors(mask)
+
+    def _put_rows(self, array: wp.array, per: int, rows: np.ndarray, values: np.ndarray) -> None:
+        """Write ``values`` (len(rows), per, ...) into the ``per`` entries of each problem of ``rows`` of a
+        problem-major device array."""
+        if per == 0 or not len(rows):
+            return
+        import torch
+
+        dev = torch.device(wp.device_to_torch(self.device))
+        wp.synchronize_device(self.device)
+        t = wp.to_torch(array)
+        src = torch.as_tensor(np.asarray(values), dtype=t.dtype, device=dev)
+        t[: self.batch_size * per].view(self.batch_size, per, *t.shape[1:])[
+            torch.as_tensor(rows, device=dev)
+        ] = src.reshape(len(rows), per, *t.shape[1:])
+        if self.device.is_cuda:
+            torch.cuda.synchronize(dev)
 
     def _zero_rows(self, array: wp.array, per: int, rows: np.ndarray) -> None:
         """Zero the ``per`` entries of each problem of ``rows`` in a problem-major device array."""
@@ -980,12 +1027,15 @@ class QuasiStaticSolver:
                 src_rows
             ]
 
-        # materials first (set_material rebuilds the per-problem material arrays and drops factorizations)
-        mats = list(self.materials)
-        for i, r in zip(into.tolist(), rows.tolist()):
-            mats[i] = other.materials[r]
-        if len(into) == B or any(a is not b and a != b for a, b in zip(mats, self.materials)):
-            self.set_material(mats)
+        # materials first (set_material rebuilds the copied problems' material rows and drops their
+        # factorizations; the copies below then give them their sources' springs, shifts and factors)
+        changed = [
+            (i, other.materials[r])
+            for i, r in zip(into.tolist(), rows.tolist())
+            if self.materials[i] is not other.materials[r] and self.materials[i] != other.materials[r]
+        ]
+        if changed:
+            self.set_material([m for _, m in changed], rows=[i for i, _ in changed])
         wp.synchronize_device(self.device)
         if self.device.is_cuda:
             torch.cuda.synchronize(dev)
@@ -1044,6 +1094,7 @@ class QuasiStaticSolver:
             self._last_change = np.zeros((B, *other._last_change.shape[1:]))
         self._last_change[into] = other._last_change[rows]
         self._factor_steps[into] = other._factor_steps[rows]
+        self._diag_shift_base[into] = other._diag_shift_base[rows]  # with the source's spring state
         self._factor_damping[into] = other._factor_damping[rows]
         self._gas_law[into] = other._gas_law[rows]
         self._gas_k = np.broadcast_to(np.asarray(self._gas_k, dtype=np.float64), (B,)).copy()
@@ -1930,7 +1981,6 @@ class QuasiStaticSolver:
             self.batch_size,
             self.num_dofs,
             path.relag_every,
-            atol=1e-14 * self._youngs_np * self.mesh.diameter**2,
             max_step=o.max_step_fraction * self.mesh.diameter,
             escape=o.escape_fraction * self.mesh.diameter,
         )
@@ -2127,7 +2177,7 @@ class QuasiStaticSolver:
         previous = run.residual.copy()
         run.residual[working] = res[working]
         scale = np.maximum(np.maximum(fscale, lscale), run.dof_targets.max(axis=1, initial=0.0))
-        tol = o.rtol * scale + run.atol
+        tol = o.rtol * scale + self._newton_atol
         nonfinite = working & ~np.isfinite(res)
         if nonfinite.any():
             run.status[nonfinite] = SolveStatus.NONFINITE

@@ -36,7 +36,7 @@ import dataclasses
 import json
 import logging
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -65,7 +65,7 @@ from .experiments import (
 )
 from .gripper import FRANKA_HAND, ParallelJawGripper
 from .sampler import GraspSet, sample_antipodal_grasps
-from .squeeze import GRIP_DOF, finger_contact_poses, make_squeeze_solver, squeeze_ramp
+from .squeeze import GRIP_DOF, finger_contact_poses, make_squeeze_solver, squeeze_ramp, squeeze_stream
 
 __all__ = [
     "STATUS_INVERTED",
@@ -227,46 +227,196 @@ def _check_inputs(moduli, num_grasps, steps, max_force, friction, poisson_ratio,
 
 
 # ---------------------------------------------------------------------------------------------- ramps
-def _squeeze_modulus(
-    mesh: fem.TetMesh,
-    grasps: GraspSet,
-    material: fem.Material | Sequence[fem.Material],
-    friction: float,
-    max_force: float,
-    steps: int,
-    device,
-    options,
-    reject_inverted: bool,
-    progress: bool,
-) -> dict[str, np.ndarray]:
-    """One batched squeeze ramp (one material, or one per grasp); per-grasp fields (NaN where failed) and
-    status (first failure code)."""
-    b, n = len(grasps), mesh.num_vertices
-    out = {
+def _empty_ramps(b: int, steps: int, n: int) -> dict[str, np.ndarray]:
+    """Per-ramp fields of ``b`` ramps of ``steps`` steps on an ``n``-vertex mesh, NaN until reached."""
+    return {
         "force": np.full((b, steps), np.nan),
         "von_mises": np.full((b, steps, n), np.nan, dtype=np.float32),
         "displacement": np.full((b, steps, n, 3), np.nan, dtype=np.float32),
         "finger_travel": np.full((b, steps, 2), np.nan),
         "status": np.zeros(b, dtype=np.int8),
     }
-    solver = make_squeeze_solver(mesh, grasps, material, friction, device=device, options=options)
+
+
+def _record_steps(
+    out: dict[str, np.ndarray],
+    rows: np.ndarray,
+    steps: np.ndarray,
+    eq: fem.Equilibrium,
+    reject_inverted: bool,
+) -> None:
+    """Store the equilibria ``eq`` (row i: ramp ``rows[i]`` at step ``steps[i]``) in ``out``: a ramp keeps
+    the first failure code it meets (inverted tets count as failed with ``reject_inverted``) and its
+    fields only while it is solved (NaN from its failure on)."""
+    code = np.where(eq.converged, STATUS_SOLVED, eq.status).astype(np.int8)
+    if reject_inverted:
+        code = np.where((code == STATUS_SOLVED) & (eq.inverted_tets > 0), STATUS_INVERTED, code)
     status = out["status"]
+    newly = (status[rows] == STATUS_SOLVED) & (code != STATUS_SOLVED)
+    status[rows[newly]] = code[newly]
+    ok = status[rows] == STATUS_SOLVED
+    r, s = rows[ok], steps[ok]
+    out["force"][r, s] = eq.dof_force[GRIP_DOF][ok]
+    out["von_mises"][r, s] = eq.von_mises[ok]
+    out["displacement"][r, s] = eq.displacement[ok]
+    # both pads share the grip dof: each travels this far along its own closing direction
+    out["finger_travel"][r, s] = eq.travel[GRIP_DOF][ok, None]
+
+
+@dataclass(frozen=True)
+class _Ramps:
+    """How the squeeze ramps of a shard are simulated (the generator's arguments of that name)."""
+
+    mesh: fem.TetMesh
+    friction: float
+    max_force: float
+    steps: int
+    device: object
+    options: fem.SolverOptions | None
+    reject_inverted: bool
+    progress: bool
+    gripper: ParallelJawGripper
+
+
+def _squeeze_modulus(
+    ramps: _Ramps, grasps: GraspSet, material: fem.Material | Sequence[fem.Material]
+) -> dict[str, np.ndarray]:
+    """One batched squeeze ramp (one material, or one per grasp); per-grasp fields (NaN where failed) and
+    status (first failure code)."""
+    b = len(grasps)
+    out = _empty_ramps(b, ramps.steps, ramps.mesh.num_vertices)
+    solver = make_squeeze_solver(
+        ramps.mesh, grasps, material, ramps.friction, gripper=ramps.gripper, device=ramps.device,
+        options=ramps.options,
+    )  # fmt: skip
+    rows = np.arange(b)
 
     def record(s: int, _force: float, eq: fem.Equilibrium) -> None:
-        code = np.where(eq.converged, STATUS_SOLVED, eq.status).astype(np.int8)
-        if reject_inverted:
-            code = np.where((code == STATUS_SOLVED) & (eq.inverted_tets > 0), STATUS_INVERTED, code)
-        newly = (status == STATUS_SOLVED) & (code != STATUS_SOLVED)
-        status[newly] = code[newly]
-        ok = status == STATUS_SOLVED
-        out["force"][ok, s] = eq.dof_force[GRIP_DOF][ok]
-        out["von_mises"][ok, s] = eq.von_mises[ok]
-        out["displacement"][ok, s] = eq.displacement[ok]
-        # both pads share the grip dof: each travels this far along its own closing direction
-        out["finger_travel"][ok, s] = eq.travel[GRIP_DOF][ok, None]
+        _record_steps(out, rows, np.full(b, s), eq, ramps.reject_inverted)
 
-    squeeze_ramp(solver, max_force, steps, progress=progress, on_step=record)
+    squeeze_ramp(solver, ramps.max_force, ramps.steps, progress=ramps.progress, on_step=record)
     return out
+
+
+def _squeeze_streamed(
+    ramps: _Ramps,
+    grasps: GraspSet,
+    jobs: Sequence[tuple[int, int]],
+    materials: Mapping[int, fem.Material],
+    slots: int,
+    on_ramp: Callable[[int, int, dict[str, np.ndarray]], None],
+) -> None:
+    """The squeeze ramps ``jobs`` ((modulus index, grasp index) pairs) streamed through ``slots`` problems
+    (:func:`~defgraspnets.grasp.squeeze.squeeze_stream`); ``on_ramp(k, g, fields)`` is called as soon as a
+    ramp has reached (or failed) its last step, with its fields as :func:`_squeeze_modulus` gives them for
+    one grasp (``status`` an int)."""
+    n, steps = ramps.mesh.num_vertices, ramps.steps
+    index = np.array([g for _, g in jobs], dtype=int)
+    poses = finger_contact_poses(grasps[index], ramps.gripper)
+    solver = make_squeeze_solver(
+        ramps.mesh, grasps[index[: min(slots, len(jobs))]], materials[jobs[0][0]], ramps.friction,
+        gripper=ramps.gripper, device=ramps.device, options=ramps.options,
+    )  # fmt: skip
+    running: dict[int, dict[str, np.ndarray]] = {}
+
+    def on_steps(ramp_ids: np.ndarray, step_ids: np.ndarray, part: fem.Equilibrium) -> None:
+        for j in np.unique(ramp_ids).tolist():
+            if j not in running:
+                running[j] = _empty_ramps(1, steps, n)
+            mine = np.nonzero(ramp_ids == j)[0]
+            _record_steps(running[j], np.zeros(mine.size, dtype=int), step_ids[mine], part.take(mine),
+                          ramps.reject_inverted)  # fmt: skip
+            if step_ids[mine].max() == steps - 1:  # a ramp's steps arrive in order: this one is done
+                fields = running.pop(j)
+                k, g = jobs[j]
+                on_ramp(k, g, {key: (v[0] if key != "status" else int(v[0])) for key, v in fields.items()})
+
+    materials_per_job = [materials[k] for k, _ in jobs]
+    squeeze_stream(solver, poses, materials_per_job, on_steps, ramps.max_force, steps, ramps.progress)
+
+
+@dataclass
+class _ShardFill:
+    """Simulates the unwritten entries ``todo`` (modulus index -> grasp indices) of one shard and writes
+    them: squeeze ramps in batches or streamed, then the experiments of each modulus (if any)."""
+
+    writer: GraspShardWriter
+    ramps: _Ramps
+    grasps: GraspSet
+    todo: dict[int, list[int]]
+    materials: dict[int, fem.Material]
+    moduli: np.ndarray
+    layout: ExperimentLayout | None
+    names: tuple[str, ...]
+    settings: ExperimentSettings
+    experiment_options: fem.SolverOptions | None
+    directions_per_solver: int
+    bar: object = None
+
+    def write_modulus(self, kk: int, gs: list[int], res: dict[str, np.ndarray]) -> None:
+        """Run modulus kk's experiments (if any) and write its ramps ``res`` (rows: grasps ``gs``)."""
+        entries = None
+        r = self.ramps
+        if self.layout is not None:
+            entries, _ = run_experiments(
+                r.mesh, self.grasps[np.array(gs)], self.materials[kk], self.settings, self.names, r.device,
+                self.experiment_options, r.gripper, self.directions_per_solver, r.progress,
+            )  # fmt: skip
+        # ramp and experiment results of an entry are written together, then marked done
+        for j, g in enumerate(gs):
+            self.writer.write(
+                kk, g, res["force"][j], res["von_mises"][j], res["displacement"][j], res["finger_travel"][j],
+                status=int(res["status"][j]), experiments=None if entries is None else entries[j],
+            )  # fmt: skip
+
+    def modulus_done(self, kk: int, status: np.ndarray) -> None:
+        codes = status[status != STATUS_SOLVED]
+        if codes.size:
+            _log.warning(
+                "%s E=%.3g Pa: %d of %d squeeze ramps failed (status %s); stored as failed",
+                self.ramps.mesh.name, self.moduli[kk], codes.size, status.size, np.unique(codes).tolist(),
+            )  # fmt: skip
+        if self.bar is not None:
+            self.bar.update(1)
+
+    def in_batches(self, moduli_per_solver: int) -> None:
+        """The squeeze ramps of ``moduli_per_solver`` moduli at a time in one batch; each modulus is written
+        as soon as its batch is done."""
+        order = list(self.todo)
+        for batch in [order[j : j + moduli_per_solver] for j in range(0, len(order), moduli_per_solver)]:
+            per_problem = [self.materials[kk] for kk in batch for _ in self.todo[kk]]
+            grasps = self.grasps[np.concatenate([self.todo[kk] for kk in batch])]
+            batch_ramps = _squeeze_modulus(
+                self.ramps, grasps, per_problem if len(batch) > 1 else per_problem[0]
+            )
+            first = 0
+            for kk in batch:
+                gs = self.todo[kk]
+                res = {key: v[first : first + len(gs)] for key, v in batch_ramps.items()}
+                first += len(gs)
+                self.write_modulus(kk, gs, res)
+                self.modulus_done(kk, res["status"])
+
+    def streamed(self, slots: int) -> None:
+        """Every ramp through ``slots`` problems, modulus by modulus in the queue; a ramp is written as soon
+        as it is done (a killed run keeps it), or with experiments its modulus once all its ramps are."""
+        jobs = [(kk, g) for kk, gs in self.todo.items() for g in gs]
+        held: dict[int, dict[int, dict]] = {kk: {} for kk in self.todo}
+
+        def on_ramp(kk: int, g: int, fields: dict) -> None:
+            if self.layout is None:
+                self.write_modulus(kk, [g], {key: np.asarray(v)[None] for key, v in fields.items()})
+                fields = {"status": fields["status"]}
+            held[kk][g] = fields
+            gs = self.todo[kk]
+            if len(held[kk]) == len(gs):
+                res = {key: np.stack([held[kk][g][key] for g in gs]) for key in held[kk][gs[0]]}
+                if self.layout is not None:
+                    self.write_modulus(kk, gs, res)
+                self.modulus_done(kk, res["status"])
+                del held[kk]
+
+        _squeeze_streamed(self.ramps, self.grasps, jobs, self.materials, slots, on_ramp)
 
 
 # ---------------------------------------------------------------------------------------------- experiments
@@ -550,6 +700,7 @@ def generate_object_shards(
     experiment_options: fem.SolverOptions | None = None,
     directions_per_solver: int = 1,
     moduli_per_solver: int = 1,
+    stream_slots: int = 0,
 ) -> list[ShardResult]:
     """Simulate the squeeze ramps (and optionally the DefGraspSim experiments) of one object and write its
     grasp shard(s).
@@ -589,6 +740,11 @@ def generate_object_shards(
             On the 2-core CPU it does not pay (cuboid_50x50x50, 8 grasps x 2 moduli, 5 steps, AMG-CG: 30.3
             and 43.5 s with 2 against 27.8 and 28.7 s with 1: a Krylov tolerance is shared by the batch); it
             is meant for GPUs, where it is not measured yet.
+        stream_slots: > 0: all the shard's squeeze ramps (every modulus and grasp) flow through a batch of
+            this many problems instead (:func:`~defgraspnets.grasp.squeeze.squeeze_stream`): a problem that
+            finished its ramp takes the next one, so a slow ramp holds up no batch. The same data with an
+            exact linear solver; each ramp is written as soon as it is done (with ``experiments``: each
+            modulus once all its ramps are). ``moduli_per_solver`` is then unused. 0: batches.
 
     Returns:
         One :class:`ShardResult` per shard handled.
@@ -611,6 +767,8 @@ def generate_object_shards(
         raise ValueError(f"directions_per_solver must be an integer >= 1, got {directions_per_solver!r}")
     if not (isinstance(moduli_per_solver, (int, np.integer)) and moduli_per_solver >= 1):
         raise ValueError(f"moduli_per_solver must be an integer >= 1, got {moduli_per_solver!r}")
+    if not (isinstance(stream_slots, (int, np.integer)) and stream_slots >= 0):
+        raise ValueError(f"stream_slots must be an integer >= 0 (0: batches), got {stream_slots!r}")
     layout = experiment_layout(names, settings) if names else None
     out_dir = Path(out_dir)
     if isinstance(obj, fem.TetMesh):
@@ -646,6 +804,9 @@ def generate_object_shards(
         raise ValueError(
             f"{name}: only {len(all_grasps)} grasps could be sampled, fewer than shard_count={shard_count}"
         )
+    ramps = _Ramps(
+        mesh, friction, max_force, steps, device, solver_options, reject_inverted, progress, gripper
+    )
     results = []
     for i, path in paths.items():
         if path.exists() and not overwrite:
@@ -670,55 +831,26 @@ def generate_object_shards(
                 )
             todo = {kk: [g for k2, g in pending if k2 == kk] for kk in range(k)}
             todo = {kk: gs for kk, gs in todo.items() if gs}
-            bar = None
-            if progress:
-                from tqdm.auto import tqdm
-
-                bar = tqdm(total=len(todo), desc=f"{name} shard {i + 1}/{shard_count}", unit="E")
             materials = {
                 kk: fem.Material(
                     float(moduli[kk]), float(poisson_ratio), float(density), model=material_model
                 )
                 for kk in todo
             }
-            # the squeeze ramps of moduli_per_solver moduli at a time in one batch; each modulus is written as
-            # soon as its batch is done
-            order = list(todo)
-            for batch in [order[j : j + moduli_per_solver] for j in range(0, len(order), moduli_per_solver)]:
-                per_problem = [materials[kk] for kk in batch for _ in todo[kk]]
-                batch_ramps = _squeeze_modulus(
-                    mesh, grasps[np.concatenate([todo[kk] for kk in batch])],
-                    per_problem if len(batch) > 1 else per_problem[0], friction, max_force, steps, device,
-                    solver_options, reject_inverted, progress,
-                )  # fmt: skip
-                first = 0
-                for kk in batch:
-                    gs = todo[kk]
-                    res = {key: v[first : first + len(gs)] for key, v in batch_ramps.items()}
-                    first += len(gs)
-                    entries = None
-                    if layout is not None:
-                        entries, _ = run_experiments(
-                            mesh, grasps[np.array(gs)], materials[kk], settings, names, device,
-                            experiment_options, gripper, directions_per_solver, progress,
-                        )  # fmt: skip
-                    # ramp and experiment results of an entry are written together, then marked done
-                    for j, g in enumerate(gs):
-                        writer.write(
-                            kk, g, res["force"][j], res["von_mises"][j], res["displacement"][j],
-                            res["finger_travel"][j], status=int(res["status"][j]),
-                            experiments=None if entries is None else entries[j],
-                        )  # fmt: skip
-                    codes = res["status"][res["status"] != STATUS_SOLVED]
-                    if codes.size:
-                        _log.warning(
-                            "%s E=%.3g Pa: %d of %d squeeze ramps failed (status %s); stored as failed",
-                            name, moduli[kk], codes.size, len(gs), np.unique(codes).tolist(),
-                        )  # fmt: skip
-                    if bar is not None:
-                        bar.update(1)
-            if bar is not None:
-                bar.close()
+            fill = _ShardFill(
+                writer, ramps, grasps, todo, materials, moduli, layout, names, settings, experiment_options,
+                directions_per_solver,
+            )  # fmt: skip
+            if progress:
+                from tqdm.auto import tqdm
+
+                fill.bar = tqdm(total=len(todo), desc=f"{name} shard {i + 1}/{shard_count}", unit="E")
+            if stream_slots:
+                fill.streamed(int(stream_slots))
+            else:
+                fill.in_batches(moduli_per_solver)
+            if fill.bar is not None:
+                fill.bar.close()
             final = writer.finalize()
         except BaseException:
             writer.close()
@@ -768,12 +900,11 @@ def time_grasp_experiments(
     names = resolve_experiments(names)
     b = len(grasps)
     out: dict = {"grasps": b}
+    ramps = _Ramps(mesh, settings.friction, max_force, steps, device, squeeze_options, True, False, gripper)
     if warmup:
         start = time.perf_counter()
         one = grasps[np.array([0])]
-        _squeeze_modulus(
-            mesh, one, material, settings.friction, max_force, 1, device, squeeze_options, True, False
-        )
+        _squeeze_modulus(dataclasses.replace(ramps, steps=1), one, material)
         quick = dataclasses.replace(
             settings, squeeze_steps=1, pickup_steps=1, acceleration_steps=1, num_directions=2
         )
@@ -783,9 +914,7 @@ def time_grasp_experiments(
         ex.acceleration("angular", [[0.0, 0.0, 1.0]])
         out["seconds_warmup"] = time.perf_counter() - start
     start = time.perf_counter()
-    ramp = _squeeze_modulus(
-        mesh, grasps, material, settings.friction, max_force, steps, device, squeeze_options, True, False
-    )
+    ramp = _squeeze_modulus(ramps, grasps, material)
     seconds = time.perf_counter() - start
     out["squeeze_ramp"] = {
         "steps": int(steps),

@@ -28,6 +28,7 @@ __all__ = [
     "pad_shape",
     "squeeze_ramp",
     "squeeze_solver_options",
+    "squeeze_stream",
 ]
 
 FINGER_NAMES = ("left_finger", "right_finger")
@@ -205,6 +206,58 @@ def make_squeeze_solver(
     for i, name in enumerate(FINGER_NAMES):
         solver.set_body_pose(name, poses[:, i])
     return solver
+
+
+def squeeze_stream(
+    solver: fem.QuasiStaticSolver,
+    finger_poses: np.ndarray,
+    materials: Sequence[fem.Material],
+    on_steps: Callable[[np.ndarray, np.ndarray, fem.Equilibrium], None],
+    max_force: float = 15.0,
+    steps: int = 50,
+    progress: bool = False,
+) -> None:
+    """Squeeze ramps of J (grasp, material) pairs streamed through the B problems of a squeeze solver
+    (:meth:`fem.QuasiStaticSolver.solve_stream`): a problem that has finished its ramp (or failed) takes
+    the next one at the next Newton pass, so the slow ramps' tails overlap with the others' work.
+
+    Each ramp starts at rest with the pads at first contact (``finger_poses[j]``, (J, 2, 4, 4) finger
+    frames in the object frame, :func:`finger_contact_poses`) and the material ``materials[j]``, and
+    reaches the equilibria :func:`squeeze_ramp` gives it in a batch of its own (bit for bit with the
+    solvers that factor one problem at a time: "direct", "dense").
+
+    Args:
+        solver: a squeeze solver (:func:`make_squeeze_solver`; any grasps, any batch size B): its
+            problems are the slots. It is left with the last ramps' states.
+        on_steps: ``on_steps(ramp_ids, step_indices, part)``: (ramp, step) pairs just reached and their
+            equilibria (row i of ``part``); every step of every ramp once, a ramp's steps in order (a
+            failed ramp reports its later steps flagged, as :func:`squeeze_ramp` does).
+        max_force, steps: the ramp, 0 -> ``max_force`` [N] total normal grasp force in ``steps`` steps.
+        progress: a progress bar over the ramps.
+    """
+    if not np.isfinite(max_force) or max_force <= 0:
+        raise ValueError(f"max_force must be a positive force in newtons, got {max_force!r}")
+    finger_poses = np.asarray(finger_poses, dtype=float)
+    if finger_poses.ndim != 4 or finger_poses.shape[1:] != (2, 4, 4):
+        raise ValueError(f"finger_poses must be (J, 2, 4, 4), got {finger_poses.shape}")
+    materials = list(materials)
+    if len(materials) != len(finger_poses):
+        raise ValueError(f"{len(finger_poses)} ramps need as many materials, got {len(materials)}")
+    # the rest state every ramp starts from: a one-problem solver of the same bodies and options
+    template = fem.QuasiStaticSolver(
+        solver.mesh, solver.bodies, materials[0] if materials else solver.materials[0], batch_size=1,
+        device=solver.device, options=solver.options,
+    )  # fmt: skip
+    forces = [max_force * s / steps for s in range(1, steps + 1)]
+    ramp = [{GRIP_DOF: force} for force in forces]
+
+    def start(problems: np.ndarray, ramp_ids: np.ndarray) -> None:
+        solver.copy_state_from(template, rows=np.zeros(len(problems), dtype=int), into=problems)
+        solver.set_material([materials[j] for j in ramp_ids], rows=problems)
+        for i, name in enumerate(FINGER_NAMES):
+            solver.set_body_pose(name, finger_poses[ramp_ids, i], rows=problems)
+
+    solver.solve_stream([ramp] * len(finger_poses), start, on_steps, progress=progress)
 
 
 def squeeze_ramp(
