@@ -317,19 +317,27 @@ def _squeeze_streamed(
         ramps.mesh, grasps[index[: min(slots, len(jobs))]], materials[jobs[0][0]], ramps.friction,
         gripper=ramps.gripper, device=ramps.device, options=ramps.options,
     )  # fmt: skip
-    running: dict[int, dict[str, np.ndarray]] = {}
+    # the fields of the ramps under way, one row each (at most one ramp per problem is under way)
+    rows_of: dict[int, int] = {}
+    free = list(range(min(slots, len(jobs))))
+    running = _empty_ramps(len(free), steps, n)
 
     def on_steps(ramp_ids: np.ndarray, step_ids: np.ndarray, part: fem.Equilibrium) -> None:
         for j in np.unique(ramp_ids).tolist():
-            if j not in running:
-                running[j] = _empty_ramps(1, steps, n)
-            mine = np.nonzero(ramp_ids == j)[0]
-            _record_steps(running[j], np.zeros(mine.size, dtype=int), step_ids[mine], part.take(mine),
-                          ramps.reject_inverted)  # fmt: skip
-            if step_ids[mine].max() == steps - 1:  # a ramp's steps arrive in order: this one is done
-                fields = running.pop(j)
-                k, g = jobs[j]
-                on_ramp(k, g, {key: (v[0] if key != "status" else int(v[0])) for key, v in fields.items()})
+            if j not in rows_of:
+                rows_of[j] = free.pop()
+        rows = np.array([rows_of[j] for j in ramp_ids.tolist()], dtype=int)
+        _record_steps(running, rows, step_ids, part, ramps.reject_inverted)
+        # a ramp's steps arrive in order: one that reached its last step is done
+        for j in np.unique(ramp_ids[step_ids == steps - 1]).tolist():
+            r = rows_of.pop(j)
+            fields = {key: v[r].copy() for key, v in running.items()}
+            fields["status"] = int(fields["status"])
+            for key, v in _empty_ramps(1, steps, n).items():
+                running[key][r] = v[0]
+            free.append(r)
+            k, g = jobs[j]
+            on_ramp(k, g, fields)
 
     materials_per_job = [materials[k] for k, _ in jobs]
     squeeze_stream(solver, poses, materials_per_job, on_steps, ramps.max_force, steps, ramps.progress)
