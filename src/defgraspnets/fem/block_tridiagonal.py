@@ -277,21 +277,23 @@ class BlockTridiagonalFactor:
 
     def solve(self, rhs, rows=None):
         """Solutions (len(rows), n) of right-hand sides (len(rows), n) in the BSR's scalar order, with the
-        factors of problems ``rows`` (a LongTensor of positions in this batch; None: all, in order)."""
+        factors of problems ``rows`` (a LongTensor of positions in this batch; None: all, in order).
+        ``rhs`` (len(rows), n, k): k right-hand sides per problem, solved together (one substitution)."""
         import torch
 
         lay = self.layout
         perm = self.permutation
-        b_v = rhs.index_select(1, perm).unsqueeze(2)
+        columns = rhs if rhs.dim() == 3 else rhs.unsqueeze(2)
+        b_v = columns.index_select(1, perm)
         x_v = self._vertex_solve(b_v, rows)
-        x = torch.empty_like(rhs)
+        x = torch.empty_like(columns)
         if lay.border:
             Z, S = self._pick(self.Z, rows), self._pick(self.S, rows)
-            b_t = rhs[:, lay.vertex_scalars :].unsqueeze(2)
+            b_t = columns[:, lay.vertex_scalars :]
             # b_t - G^T K^{-1} b_v = b_t - Z^T b_v (K symmetric)
             r_t = torch.baddbmm(b_t, Z.mT, b_v, alpha=-1.0)
             x_t = torch.linalg.lu_solve(*S, r_t) if self.lu else torch.cholesky_solve(r_t, S)
             x_v = torch.baddbmm(x_v, Z, x_t, alpha=-1.0)
-            x[:, lay.vertex_scalars :] = x_t.squeeze(2)
-        x[:, perm] = x_v.squeeze(2)
-        return x
+            x[:, lay.vertex_scalars :] = x_t
+        x[:, perm] = x_v
+        return x if rhs.dim() == 3 else x.squeeze(2)

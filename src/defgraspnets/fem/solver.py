@@ -1299,31 +1299,58 @@ class QuasiStaticSolver:
         )
         return vol, p
 
+    def _gas_direction(self, k: np.ndarray):
+        """(B, 3R) torch tensor on the device: u = dV/dx on the free components of the problems with a gas
+        stiffness ``k`` > 0 (zero rows elsewhere), after the assembly that computed dV/dx."""
+        import torch
+
+        B, R = self.batch_size, self.rows_per_problem
+        dev = torch.device(wp.device_to_torch(self.device))
+        wp.synchronize_device(self.device)
+        grad = wp.to_torch(self._volume_gradient)[: B * R].reshape(B, R, 3)
+        free = wp.to_torch(self._free).reshape(1, R, 3)
+        stiff = torch.as_tensor(k > 0, device=dev).reshape(B, 1, 1)
+        return torch.where(stiff, grad * free, 0.0).reshape(B, R * 3)
+
     def _gas_rank_one(self, working: np.ndarray, rtol: float) -> int:
         """Add the gas stiffness k u u^T (u = dV/dx on free components, k = -dp/dV) to the Newton step by
         Sherman-Morrison: with H0 x0 = r (already in ``increment``) and H0 y = u,
 
             x = x0 - y k (u . x0) / (1 + k u . y).
 
-        Returns the Krylov iterations of the second solve."""
+        y comes with the step where the factorizing solvers solved u as a second column
+        (``BatchedSystem.extra_rhs``, set by :meth:`_newton_pass`), else from a second solve of the same
+        matrices. On the device throughout. Returns the Krylov iterations of the second solve."""
+        import torch
+
         k = np.where(working, self._gas_k, 0.0)
         if not np.any(k > 0):
             return 0
-        B, R = self.batch_size, self.rows_per_problem
+        B, n = self.batch_size, 3 * self.rows_per_problem
         sysm = self.system
-        x0 = sysm.increment.numpy().reshape(B, R * 3).copy()
-        r0 = sysm.rhs.numpy().copy()
-        free = self._free.numpy()[None]
-        u = (self._volume_gradient.numpy().reshape(B, R, 3) * free).reshape(B, R * 3)
-        u[k <= 0] = 0.0
-        sysm.rhs.assign(u.reshape(-1, 3))
-        n_lin, _ = self._linear_solve(rtol)
-        y = sysm.increment.numpy().reshape(B, R * 3)
-        ux = np.einsum("bi,bi->b", u, x0)
-        uy = np.einsum("bi,bi->b", u, y)
-        coef = np.where(k > 0, k * ux / (1.0 + k * uy), 0.0)
-        sysm.increment.assign((x0 - coef[:, None] * y).reshape(-1, 3))
-        sysm.rhs.assign(r0)
+        dev = torch.device(wp.device_to_torch(self.device))
+        u = self._gas_direction(k)
+        increment = wp.to_torch(sysm.increment)[: B * n // 3].reshape(B, n)
+        x0, y, n_lin = increment, sysm.extra_increment, 0
+        if y is None:
+            x0 = increment.clone()
+            rhs = wp.to_torch(sysm.rhs)[: B * n // 3].reshape(B, n)
+            r0 = rhs.clone()
+            rhs.copy_(u)
+            if dev.type == "cuda":
+                torch.cuda.synchronize(dev)
+            n_lin, _ = self._linear_solve(rtol)
+            wp.synchronize_device(self.device)
+            y = increment.clone()
+            rhs.copy_(r0)
+        kt = torch.as_tensor(k, device=dev)
+        ux = torch.einsum("bi,bi->b", u, x0)
+        uy = torch.einsum("bi,bi->b", u, y)
+        coef = torch.where(kt > 0, kt * ux / (1.0 + kt * uy), 0.0)
+        increment.copy_(x0 - coef[:, None] * y)
+        sysm.extra_increment = None
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
         return n_lin
 
     def _assemble(self, active) -> None:
@@ -2235,7 +2262,15 @@ class QuasiStaticSolver:
             slow = np.isfinite(previous) & ~(res <= o.factor_reuse_contraction * previous)
             worn = self._factor_steps > self._max_factor_reuse
             refactor = working & (slow | worn | run.stale_step | (damping != self._factor_damping))
-        n_lin, _ = self._linear_solve(linear_rtol, refactor)
+        sysm.extra_increment = None
+        if self.pressure_surface is not None and self.linear_solver in ("dense", "banded", "dense_banded"):
+            # the gas stiffness's direction is solved with the step, in the same substitutions
+            k = np.where(working, self._gas_k, 0.0)
+            sysm.extra_rhs = self._gas_direction(k) if np.any(k > 0) else None
+        try:
+            n_lin, _ = self._linear_solve(linear_rtol, refactor)
+        finally:
+            sysm.extra_rhs = None
         fresh = working & (sysm.fresh_factor if self._reuse_factors else True)
         self._factor_steps[working] += 1
         self._factor_steps[fresh] = 1

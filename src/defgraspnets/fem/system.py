@@ -180,6 +180,13 @@ class BatchedSystem:
         self.factorizations = np.zeros(batch_size, dtype=np.int64)
         #: per problem: the last direct or dense solve used a factorization made in that call
         self.fresh_factor = np.zeros(batch_size, dtype=bool)
+        #: a second right-hand side per problem ((B, 3R) torch tensor on the device, or None) that the
+        #: factorizing solves (dense, banded, dense_banded) solve with the same factors in the same
+        #: substitutions as ``rhs``, into :attr:`extra_increment`; the caller clears it
+        self.extra_rhs = None
+        #: (B, 3R) solutions of :attr:`extra_rhs` of the last factorizing solve (zero for problems whose
+        #: ``rhs`` was zero), or None
+        self.extra_increment = None
 
     def zero(self):
         self.values.zero_()
@@ -324,7 +331,22 @@ class BatchedSystem:
         rhs = wp.to_torch(self.rhs).reshape(B, n)
         increment = wp.to_torch(self.increment).reshape(B, n)
         increment.zero_()
+        if self.extra_rhs is not None:
+            # both right-hand sides as the two columns of one (B, n, 2) system: one substitution each
+            self.extra_increment = torch.zeros_like(rhs)
+            rhs = torch.stack([rhs, self.extra_rhs.reshape(B, n)], dim=2)
+        else:
+            self.extra_increment = None
         return dev, values, rhs, increment, todo, self._to_factor(todo, self._dense_factors, refactor)
+
+    def _store_solution(self, increment, index, x) -> None:
+        """Rows ``index`` of the increment <- solutions ``x`` (m, n), or (m, n, 2) with :attr:`extra_rhs`'s
+        solutions as the second column (into :attr:`extra_increment`)."""
+        if x.dim() == 3:
+            increment[index] = x[..., 0]
+            self.extra_increment[index] = x[..., 1]
+        else:
+            increment[index] = x
 
     def _problems_with_rhs(self) -> list[int]:
         """Problems whose right-hand side is not zero (the others are converged or inactive), after Warp's
@@ -397,8 +419,10 @@ class BatchedSystem:
                     ("lu", *torch.linalg.lu_factor(A[k])) if info[k] else ("cholesky", L[k])
                 )
             x = self._dense_substitute(ids, rhs)
-            increment[index] = x
-            b_ = rhs[index]
+            self._store_solution(increment, index, x)
+            if x.dim() == 3:  # the residual of the Newton step's right-hand side (the first column)
+                x = x[..., 0]
+            b_ = rhs[index] if rhs.dim() == 2 else rhs[index, :, 0]
             res = torch.linalg.vector_norm(torch.bmm(A, x.unsqueeze(2)).squeeze(2) - b_, dim=1)
             norm = torch.linalg.vector_norm(b_, dim=1).clamp_min(torch.finfo(torch.float64).tiny)
             worst = max(worst, float((res / norm).max()))
@@ -406,7 +430,8 @@ class BatchedSystem:
         fresh = set(fresh)
         reused = [p for p in todo if p not in fresh]
         for ids in [reused[i : i + chunk] for i in range(0, len(reused), chunk)]:
-            increment[torch.as_tensor(ids, device=dev)] = self._dense_substitute(ids, rhs)
+            index = torch.as_tensor(ids, device=dev)
+            self._store_solution(increment, index, self._dense_substitute(ids, rhs))
         if dev.type == "cuda":
             torch.cuda.synchronize(dev)
         return 1, worst
@@ -487,7 +512,7 @@ class BatchedSystem:
                 for k, p in enumerate(singular):
                     self._dense_factors[p] = ("lu", *torch.linalg.lu_factor(A[k]))
                 del A
-        increment[torch.as_tensor(todo, device=dev)] = self._dense_substitute(todo, rhs)
+        self._store_solution(increment, torch.as_tensor(todo, device=dev), self._dense_substitute(todo, rhs))
         if fresh:
             worst = self._relative_residual(fresh)
         if dev.type == "cuda":
@@ -513,7 +538,8 @@ class BatchedSystem:
         return float((torch.linalg.vector_norm(r, dim=1) / norm).max())
 
     def _dense_substitute(self, ids: list[int], rhs):
-        """(len(ids), n) solutions of the listed problems' right-hand sides with their stored factors.
+        """(len(ids), n) solutions of the listed problems' right-hand sides (B, n) with their stored
+        factors; (len(ids), n, k) for (B, n, k) right-hand sides (k columns solved together).
 
         Dense Cholesky: two triangular solves (trsm) per factor, not cholesky_solve (its batched potrs
         costs ~36 ms for any batch of two or more 2883-unknown problems on an H100, the triangular solves
@@ -522,7 +548,9 @@ class BatchedSystem:
         factors: one batched substitution per factorization batch. LU: one solve each."""
         import torch
 
-        b = rhs[torch.as_tensor(ids, device=rhs.device)].unsqueeze(2)
+        b = rhs[torch.as_tensor(ids, device=rhs.device)]
+        if rhs.dim() == 2:
+            b = b.unsqueeze(2)
         x = torch.empty_like(b)
         factors = [self._dense_factors[p] for p in ids]
         chol = [k for k, f in enumerate(factors) if f[0] == "cholesky"]
@@ -548,8 +576,8 @@ class BatchedSystem:
             k = torch.as_tensor(ks, device=rhs.device)
             everything = positions == list(range(len(factor.failed)))
             rows = None if everything else torch.as_tensor(positions, device=rhs.device)
-            x[k] = factor.solve(b[k].squeeze(2), rows).unsqueeze(2)
-        return x.squeeze(2)
+            x[k] = factor.solve(b[k], rows)
+        return x.squeeze(2) if rhs.dim() == 2 else x
 
     def solve_amg(self, near_nullspace: np.ndarray, rtol: float, maxiter: int) -> tuple[int, float]:
         """CG preconditioned by smoothed-aggregation algebraic multigrid (pyamg) on the host, with the
