@@ -747,12 +747,15 @@ def generate_object_shards(
             the batch runs in lockstep, so its slowest ramp holds the others. 1: one batch per modulus.
             On the 2-core CPU it does not pay (cuboid_50x50x50, 8 grasps x 2 moduli, 5 steps, AMG-CG: 30.3
             and 43.5 s with 2 against 27.8 and 28.7 s with 1: a Krylov tolerance is shared by the batch); it
-            is meant for GPUs, where it is not measured yet.
+            is meant for GPUs: on one H200, 48 grasps x 4 moduli x 10 steps of cuboid_50x50x50, 13.3 s with
+            4 against 22.8 s with 1 (``benchmarks/grasp_datagen_moduli_per_solver_h200_s30.json``).
         stream_slots: > 0: all the shard's squeeze ramps (every modulus and grasp) flow through a batch of
             this many problems instead (:func:`~defgraspnets.grasp.squeeze.squeeze_stream`): a problem that
             finished its ramp takes the next one, so a slow ramp holds up no batch. The same data with an
             exact linear solver; each ramp is written as soon as it is done (with ``experiments``: each
-            modulus once all its ramps are). ``moduli_per_solver`` is then unused. 0: batches.
+            modulus once all its ramps are). ``moduli_per_solver`` is then unused. 0: batches. On one
+            H100 128 slots tie ``moduli_per_solver=4`` (400 ramps of 50 steps: 38.5-40.4 against
+            39.3-41.9 s; ``benchmarks/grasp_datagen_stream_h100_s32.json``).
 
     Returns:
         One :class:`ShardResult` per shard handled.

@@ -84,8 +84,9 @@ def exact_linear_solver(device) -> str:
     H100 (192 poke paths of the grid, cap 8, 20 mm sphere, 960 states): in batches of 64 paths 264.0 s
     dense, 229.9 s banded; streamed through 64 problems (:meth:`MembraneSimulator.indent_stream`, the
     batch stays full) 232.9 s dense, 164.8 s banded. (Before the load steps ran without a barrier, in
-    lockstep, dense and banded tied: 102.1 and 104.4 s for 64 paths.) ``dense_banded`` itself was not
-    timed on the membrane; its switch point comes from the FEM box (``benchmark_fem.py``)."""
+    lockstep, dense and banded tied: 102.1 and 104.4 s for 64 paths.) Streamed through 128 problems, on
+    another lease: banded 145.8 s, ``dense_banded`` 127.8 s (its switch point comes from the FEM box,
+    ``benchmark_fem.py``; a few paths' tails then factor densely)."""
     import warp as wp
 
     wp.init()
