@@ -76,6 +76,25 @@ def test_finished_shard_is_skipped(data_dir):
     assert r.skipped
 
 
+class Killed(Exception):
+    """A generation killed midway (as by a signal)."""
+
+
+def _kill_after_writes(monkeypatch, n: int) -> list:
+    """GraspShardWriter.write raises Killed right after its n-th entry is written; returns the (k, g)
+    written so far."""
+    real_write, written = GraspShardWriter.write, []
+
+    def write_then_die(self, k, g, *a, **kw):
+        real_write(self, k, g, *a, **kw)
+        written.append((k, g))
+        if len(written) == n:
+            raise Killed
+
+    monkeypatch.setattr(GraspShardWriter, "write", write_then_die)
+    return written
+
+
 def test_resume_simulates_only_missing_grasps(tmp_path, monkeypatch):
     calls = []
     real = datagen._squeeze_modulus
@@ -85,20 +104,8 @@ def test_resume_simulates_only_missing_grasps(tmp_path, monkeypatch):
         return real(ramps, grasps, material)
 
     monkeypatch.setattr(datagen, "_squeeze_modulus", spy)
-
-    class Killed(Exception):
-        pass
-
     real_write = GraspShardWriter.write
-    written = []
-
-    def write_then_die(self, k, g, *a, **kw):
-        real_write(self, k, g, *a, **kw)
-        written.append((k, g))
-        if len(written) == GRASPS + 1:  # all of modulus 0 and one grasp of modulus 1
-            raise Killed
-
-    monkeypatch.setattr(GraspShardWriter, "write", write_then_die)
+    _kill_after_writes(monkeypatch, GRASPS + 1)  # all of modulus 0 and one grasp of modulus 1
     with pytest.raises(Killed):
         _generate(tmp_path)
     partial = tmp_path / "tinybox__shard0of1.partial.h5"
@@ -222,20 +229,8 @@ def test_streamed_ramps_give_the_same_data_bit_for_bit(tmp_path, monkeypatch):
 def test_a_killed_stream_resumes_with_the_unwritten_ramps(tmp_path, monkeypatch):
     """A streamed generation killed after 4 of 6 ramps were written simulates only the other 2 when run
     again, and ends with the shard an uninterrupted run writes."""
-
-    class Killed(Exception):
-        pass
-
     real_write = GraspShardWriter.write
-    written = []
-
-    def write_then_die(self, k, g, *a, **kw):
-        real_write(self, k, g, *a, **kw)
-        written.append((k, g))
-        if len(written) == 4:
-            raise Killed
-
-    monkeypatch.setattr(GraspShardWriter, "write", write_then_die)
+    written = _kill_after_writes(monkeypatch, 4)
     with pytest.raises(Killed):
         _generate(tmp_path / "resumed", **_dense(stream_slots=2))
     monkeypatch.setattr(GraspShardWriter, "write", real_write)
