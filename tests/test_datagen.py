@@ -246,6 +246,14 @@ def test_a_killed_stream_resumes_with_the_unwritten_ramps(tmp_path, monkeypatch)
     assert len(streamed) == 1 and sorted(streamed[0]) == sorted(
         set((k, g) for k in range(2) for g in range(GRASPS)) - set(written)
     )
+    # killed after its last entry, before the shard was finalized: the re-run solves nothing, finalizes it
+    _kill_after_writes(monkeypatch, 6)
+    with pytest.raises(Killed):
+        _generate(tmp_path / "last", **_dense(stream_slots=2))
+    monkeypatch.setattr(GraspShardWriter, "write", real_write)
+    streamed.clear()
+    (last,) = _generate(tmp_path / "last", **_dense(stream_slots=2))
+    assert streamed == [] and len(GraspShard(last.path).solved()) == 2 * GRASPS
     (whole,) = _generate(tmp_path / "whole", **_dense(stream_slots=2))
     a, b = GraspShard(whole.path), GraspShard(r.path)
     np.testing.assert_array_equal(a.status, b.status)

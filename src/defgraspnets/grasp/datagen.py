@@ -409,6 +409,8 @@ class _ShardFill:
         """Every ramp through ``slots`` problems, modulus by modulus in the queue; a ramp is written as soon
         as it is done (a killed run keeps it), or with experiments its modulus once all its ramps are."""
         jobs = [(kk, g) for kk, gs in self.todo.items() for g in gs]
+        if not jobs:  # every entry written (killed before the shard was finalized): nothing to solve
+            return
         held: dict[int, dict[int, dict]] = {kk: {} for kk in self.todo}
 
         def on_ramp(kk: int, g: int, fields: dict) -> None:
