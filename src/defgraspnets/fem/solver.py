@@ -880,6 +880,17 @@ class QuasiStaticSolver:
         if self.device.is_cuda:
             torch.cuda.synchronize(dev)
 
+    def _host_rows(self, array: wp.array, per: int, rows: np.ndarray) -> np.ndarray:
+        """The ``per`` entries of each problem of ``rows`` of a problem-major device array, on the host
+        ((len(rows), per, ...); gathered on the device first, so only those problems are copied)."""
+        import torch
+
+        wp.synchronize_device(self.device)
+        t = wp.to_torch(array)
+        index = torch.as_tensor(np.asarray(rows, dtype=np.int64), device=t.device)
+        picked = t[: self.batch_size * per].view(self.batch_size, per, *t.shape[1:]).index_select(0, index)
+        return picked.cpu().numpy()
+
     def _zero_rows(self, array: wp.array, per: int, rows: np.ndarray) -> None:
         """Zero the ``per`` entries of each problem of ``rows`` in a problem-major device array."""
         if per == 0 or not len(rows):
@@ -2555,37 +2566,40 @@ class QuasiStaticSolver:
 
         # reaction forces on fixed components: the gradient of Pi there (before constraints); the assembly
         # also gives the cavity volume's gradient (the gas force), so without either it is skipped
+        R = self.rows_per_problem
         reaction = np.zeros((len(rows), N, 3))
         if self.fixed_mask.any() or self.pressure_surface is not None:
-            active = self._active_array(np.ones(B, dtype=bool))
-            self._assemble(active)
-            grad = self.system.gradient.numpy().reshape(B, self.rows_per_problem, 3)[rows]
+            # only the reported problems (the next Newton pass assembles the iterating ones anew)
+            mask = np.zeros(B, dtype=bool)
+            mask[rows] = True
+            self._assemble(self._active_array(mask))
+            grad = self._host_rows(self.system.gradient, R, rows).reshape(n, R, 3)
             reaction = np.where(self.fixed_mask[None], grad[:, :N], 0.0)
         gas = {}
         if self.pressure_surface is not None:
             vol = self.rest_cavity_volume + self._cavity_volume_change(self._positions)
             p = pk.gas_pressure(self._gas_law, vol, self.pressure_surface.external_volume)
-            dv = self._volume_gradient.numpy().reshape(B, self.rows_per_problem, 3)[rows, :N]
+            dv = self._host_rows(self._volume_gradient, R, rows).reshape(n, R, 3)[:, :N]
             gas = {
                 "gauge_pressure": p[rows],
                 "cavity_volume": vol[rows],
                 "pressure_force": p[rows, None, None] * dv,
             }
 
-        q = self._q.numpy().reshape(B, self.rows_per_problem, 3)[rows]
+        q = self._host_rows(self._q, R, rows).reshape(n, R, 3)
         travel = {n: q[:, N + d, 0].copy() for d, n in enumerate(self.dof_names)}
         body_force, body_torque, cn, cf, cs = {}, {}, {}, {}, {}
         dof_force = {n: np.zeros(len(rows)) for n in self.dof_names}
         max_pen = np.zeros(len(rows))
         if K:
             self._contact_state(self._positions, self._travel)
-            fn = self._c_force.numpy().reshape(B, S, K)[rows]
-            nrm = self._c_normal.numpy().reshape(B, S, K, 3)[rows]
-            ff = self._c_friction.numpy().reshape(B, S, K, 3)[rows]
-            st = self._c_stick.numpy().reshape(B, S, K)[rows].astype(bool)
-            gap = self._c_gap.numpy().reshape(B, S, K)[rows]
+            fn = self._host_rows(self._c_force, S * K, rows).reshape(n, S, K)
+            nrm = self._host_rows(self._c_normal, S * K, rows).reshape(n, S, K, 3)
+            ff = self._host_rows(self._c_friction, S * K, rows).reshape(n, S, K, 3)
+            st = self._host_rows(self._c_stick, S * K, rows).reshape(n, S, K).astype(bool)
+            gap = self._host_rows(self._c_gap, S * K, rows).reshape(n, S, K)
             max_pen = np.maximum(0.0, -gap.min(axis=(1, 2)))
-            pos = self._positions.numpy().reshape(B, N, 3)[rows][:, self.mesh.surface_vertices]
+            pos = self._host_rows(self._positions, N, rows).reshape(n, N, 3)[:, self.mesh.surface_vertices]
             rot, origin, axes = self._world_frames()
             origin, axes = origin[rows], axes[rows]
             for k, body in enumerate(self.bodies):
