@@ -356,6 +356,13 @@ def pinched_vertices(normal_force: np.ndarray, normal: np.ndarray, max_cosine: f
     return out
 
 
+def _problem_view(array: wp.array, batch_size: int, per: int):
+    """(batch_size, per, ...) PyTorch view of the first batch_size * per entries of a problem-major Warp
+    array (no copy; synchronize Warp's stream before reading what its kernels wrote)."""
+    t = wp.to_torch(array)
+    return t[: batch_size * per].view(batch_size, per, *t.shape[1:])
+
+
 def _problem_rows(rows, name: str, batch_size: int, batch: str = "") -> np.ndarray:
     """``rows`` as a 1-D int64 array of indices of a batch of ``batch_size`` problems (checked; ``batch``
     names that batch in the message)."""
@@ -860,25 +867,25 @@ class QuasiStaticSolver:
         mask[rows] = True
         self._update_bodies()
         self._commit_body_reference(mask)
-        self._zero_rows(self._stick_stretch, self.num_surface * self.num_bodies, rows)
+        self._put_rows(self._stick_stretch, self.num_surface * self.num_bodies, rows)  # zeroed
         self.system.forget_factors(mask)
 
-    def _put_rows(self, array: wp.array, per: int, rows: np.ndarray, values: np.ndarray) -> None:
-        """Write ``values`` (len(rows), per, ...) into the ``per`` entries of each problem of ``rows`` of a
-        problem-major device array."""
+    def _put_rows(self, array: wp.array, per: int, rows: np.ndarray, values=0.0) -> None:
+        """Write ``values`` ((len(rows), per, ...), or a scalar: zero by default) into the ``per`` entries of
+        each problem of ``rows`` of a problem-major device array."""
         if per == 0 or not len(rows):
             return
         import torch
 
-        dev = torch.device(wp.device_to_torch(self.device))
         wp.synchronize_device(self.device)
-        t = wp.to_torch(array)
-        src = torch.as_tensor(np.asarray(values), dtype=t.dtype, device=dev)
-        t[: self.batch_size * per].view(self.batch_size, per, *t.shape[1:])[
-            torch.as_tensor(rows, device=dev)
-        ] = src.reshape(len(rows), per, *t.shape[1:])
+        view = _problem_view(array, self.batch_size, per)
+        index = torch.as_tensor(np.asarray(rows, dtype=np.int64), device=view.device)
+        if np.ndim(values):
+            values = torch.as_tensor(np.asarray(values), dtype=view.dtype, device=view.device)
+            values = values.reshape(len(rows), *view.shape[1:])
+        view[index] = values
         if self.device.is_cuda:
-            torch.cuda.synchronize(dev)
+            torch.cuda.synchronize(view.device)
 
     def _host_rows(self, array: wp.array, per: int, rows: np.ndarray) -> np.ndarray:
         """The ``per`` entries of each problem of ``rows`` of a problem-major device array, on the host
@@ -886,25 +893,9 @@ class QuasiStaticSolver:
         import torch
 
         wp.synchronize_device(self.device)
-        t = wp.to_torch(array)
-        index = torch.as_tensor(np.asarray(rows, dtype=np.int64), device=t.device)
-        picked = t[: self.batch_size * per].view(self.batch_size, per, *t.shape[1:]).index_select(0, index)
-        return picked.cpu().numpy()
-
-    def _zero_rows(self, array: wp.array, per: int, rows: np.ndarray) -> None:
-        """Zero the ``per`` entries of each problem of ``rows`` in a problem-major device array."""
-        if per == 0 or not len(rows):
-            return
-        import torch
-
-        dev = torch.device(wp.device_to_torch(self.device))
-        wp.synchronize_device(self.device)
-        t = wp.to_torch(array)
-        t[: self.batch_size * per].view(self.batch_size, per, *t.shape[1:])[
-            torch.as_tensor(rows, device=dev)
-        ] = 0
-        if self.device.is_cuda:
-            torch.cuda.synchronize(dev)
+        view = _problem_view(array, self.batch_size, per)
+        index = torch.as_tensor(np.asarray(rows, dtype=np.int64), device=view.device)
+        return view.index_select(0, index).cpu().numpy()
 
     def set_friction(self, name: str, mu) -> None:
         """Coulomb coefficient of body ``name`` with the object (scalar or (B,))."""
@@ -1033,10 +1024,7 @@ class QuasiStaticSolver:
             """dst (this batch's array) rows ``into`` <- src (other's) problem rows, ``per`` entries each."""
             if per == 0:
                 return
-            d, s = wp.to_torch(dst), wp.to_torch(src)
-            d[: B * per].view(B, per, *d.shape[1:])[dst_rows] = s[: Bo * per].view(Bo, per, *s.shape[1:])[
-                src_rows
-            ]
+            _problem_view(dst, B, per)[dst_rows] = _problem_view(src, Bo, per)[src_rows]
 
         # materials first (set_material rebuilds the copied problems' material rows and drops their
         # factorizations; the copies below then give them their sources' springs, shifts and factors)
@@ -1323,9 +1311,10 @@ class QuasiStaticSolver:
         stiff = torch.as_tensor(k > 0, device=dev).reshape(B, 1, 1)
         return torch.where(stiff, grad * free, 0.0).reshape(B, R * 3)
 
-    def _gas_rank_one(self, working: np.ndarray, rtol: float) -> int:
-        """Add the gas stiffness k u u^T (u = dV/dx on free components, k = -dp/dV) to the Newton step by
-        Sherman-Morrison: with H0 x0 = r (already in ``increment``) and H0 y = u,
+    def _gas_rank_one(self, k: np.ndarray, u, rtol: float) -> int:
+        """Add the gas stiffness k u u^T (``u`` = dV/dx on free components, :meth:`_gas_direction`; ``k`` =
+        -dp/dV per problem, 0 where not iterating) to the Newton step by Sherman-Morrison: with H0 x0 = r
+        (already in ``increment``) and H0 y = u,
 
             x = x0 - y k (u . x0) / (1 + k u . y).
 
@@ -1334,13 +1323,9 @@ class QuasiStaticSolver:
         matrices. On the device throughout. Returns the Krylov iterations of the second solve."""
         import torch
 
-        k = np.where(working, self._gas_k, 0.0)
-        if not np.any(k > 0):
-            return 0
         B, n = self.batch_size, 3 * self.rows_per_problem
         sysm = self.system
         dev = torch.device(wp.device_to_torch(self.device))
-        u = self._gas_direction(k)
         increment = wp.to_torch(sysm.increment)[: B * n // 3].reshape(B, n)
         x0, y, n_lin = increment, sysm.extra_increment, 0
         if y is None:
@@ -2274,10 +2259,10 @@ class QuasiStaticSolver:
             worn = self._factor_steps > self._max_factor_reuse
             refactor = working & (slow | worn | run.stale_step | (damping != self._factor_damping))
         sysm.extra_increment = None
-        if self.pressure_surface is not None and self.linear_solver in ("dense", "banded", "dense_banded"):
-            # the gas stiffness's direction is solved with the step, in the same substitutions
-            k = np.where(working, self._gas_k, 0.0)
-            sysm.extra_rhs = self._gas_direction(k) if np.any(k > 0) else None
+        gas_k = np.where(working, self._gas_k, 0.0) if self.pressure_surface is not None else None
+        gas_u = self._gas_direction(gas_k) if gas_k is not None and np.any(gas_k > 0) else None
+        if gas_u is not None and self.linear_solver in ("dense", "banded", "dense_banded"):
+            sysm.extra_rhs = gas_u  # the gas stiffness's direction, solved in the step's substitutions
         try:
             n_lin, _ = self._linear_solve(linear_rtol, refactor)
         finally:
@@ -2286,8 +2271,8 @@ class QuasiStaticSolver:
         self._factor_steps[working] += 1
         self._factor_steps[fresh] = 1
         self._factor_damping[fresh] = damping[fresh]
-        if self.pressure_surface is not None:
-            n_lin += self._gas_rank_one(working, linear_rtol)
+        if gas_u is not None:
+            n_lin += self._gas_rank_one(gas_k, gas_u, linear_rtol)
         run.lin_iters[working] += n_lin
         failed, first_trial, alpha = self._line_search(working, run.max_step)
         # a stale factorization's step that the line search rejects or shortens is no verdict on the

@@ -333,8 +333,8 @@ def _squeeze_streamed(
             r = rows_of.pop(j)
             fields = {key: v[r].copy() for key, v in running.items()}
             fields["status"] = int(fields["status"])
-            for key, v in _empty_ramps(1, steps, n).items():
-                running[key][r] = v[0]
+            for key, v in running.items():  # the row is free again: as _empty_ramps leaves it
+                v[r] = STATUS_SOLVED if key == "status" else np.nan
             free.append(r)
             k, g = jobs[j]
             on_ramp(k, g, fields)
