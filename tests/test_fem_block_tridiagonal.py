@@ -65,11 +65,13 @@ def test_disconnected_components_are_ordered_one_after_the_other():
     assert set(order[:first].tolist()) == set(range(first))
 
 
+@pytest.mark.parametrize("explicit_inverse", [False, True])
 @pytest.mark.parametrize("lu", [False, True])
-def test_factor_of_a_block_tridiagonal_matrix_with_border_matches_numpy(lu):
+def test_factor_of_a_block_tridiagonal_matrix_with_border_matches_numpy(lu, explicit_inverse):
     """The layout scatters a BSR matrix into blocks; the factor solves it (several right-hand sides, a
-    subset of its problems) as numpy does. Block Cholesky flags the problem that is not positive definite;
-    block LU solves it too."""
+    subset of its problems) as numpy does, with triangular solves or with the Cholesky blocks' inverses
+    (CUDA's default; block LU keeps its solves). Block Cholesky flags the problem that is not positive
+    definite; block LU solves it too."""
     from fem_helpers import symmetric_pattern_matrices
 
     mesh = fem.TetMesh.box(size=(0.02, 0.02, 0.04), divisions=(2, 2, 5))
@@ -82,15 +84,63 @@ def test_factor_of_a_block_tridiagonal_matrix_with_border_matches_numpy(lu):
     flat = torch.as_tensor(values.reshape(3, -1))
     packed = torch.zeros(3, layout.size, dtype=torch.float64)
     packed[:, torch.as_tensor(layout.target)] = flat[:, torch.as_tensor(layout.source)]
-    factor = BlockTridiagonalFactor(layout, packed, lu=lu)
+    factor = BlockTridiagonalFactor(layout, packed, lu=lu, explicit_inverse=explicit_inverse)
+    assert factor.explicit_inverse == (explicit_inverse and not lu)
     assert factor.failed.tolist() == [False, not lu, False]
     n = dense.shape[1]
     problems = [2, 1, 0] if lu else [2, 0]
-    rhs = rng.normal(size=(len(problems), n))
+    rhs = rng.normal(size=(len(problems), n, 2))
     x = factor.solve(torch.as_tensor(rhs), torch.as_tensor(problems)).numpy()
     for k, b in enumerate(problems):
         reference = np.linalg.solve(dense[b], rhs[k])
         assert np.linalg.norm(x[k] - reference) < 1e-10 * np.linalg.norm(reference)
+
+
+def test_explicit_inverses_solve_ill_conditioned_positive_definite_matrices_as_triangular_solves_do():
+    """Stiffness-like conditioning (a soft mode 1e-7 of the stiffest, rows scaled over three decades as
+    mixed moduli and contact penalties do): the Cholesky blocks' inverses (CUDA's default) are as accurate
+    as triangular solves, both near numpy."""
+    from fem_helpers import symmetric_pattern_matrices
+
+    mesh = fem.TetMesh.box(size=(0.02, 0.02, 0.04), divisions=(2, 2, 5))
+    pattern = BlockPattern.build(mesh, num_dofs=2)
+    layout = BlockTridiagonalLayout.build(pattern.rows, pattern.cols, pattern.num_vertices, pattern.num_dofs)
+    rng = np.random.default_rng(4)
+    dense, _ = symmetric_pattern_matrices(pattern, 2, [False, False], rng)
+    n = dense.shape[1]
+    for b in range(2):  # shift the spectrum to [1e-7, 1] x its width, then scale rows and columns
+        eigenvalues = np.linalg.eigvalsh(dense[b])
+        dense[b] += np.eye(n) * (1e-7 * (eigenvalues[-1] - eigenvalues[0]) - eigenvalues[0])
+        scale = 10.0 ** rng.uniform(-3, 0, size=n)
+        dense[b] *= scale[:, None] * scale[None, :]
+    assert min(np.linalg.cond(d) for d in dense) > 1e9
+    values = np.stack(
+        [
+            dense[b][3 * r : 3 * r + 3, 3 * c : 3 * c + 3]
+            for b in range(2)
+            for r, c in zip(pattern.rows, pattern.cols)
+        ]
+    )
+    flat = torch.as_tensor(values.reshape(2, -1))
+    packed = torch.zeros(2, layout.size, dtype=torch.float64)
+    packed[:, torch.as_tensor(layout.target)] = flat[:, torch.as_tensor(layout.source)]
+    rhs = torch.as_tensor(rng.normal(size=(2, n, 2)))
+    errors = {}
+    for explicit in (False, True):
+        factor = BlockTridiagonalFactor(layout, packed, explicit_inverse=explicit)
+        assert not factor.failed.any()
+        x = factor.solve(rhs).numpy()
+        # normwise backward error |A x - b| / (|A| |x| + |b|) and forward error against numpy
+        errors[explicit] = [
+            (
+                np.linalg.norm(A @ xb - r) / (np.linalg.norm(A, 2) * np.linalg.norm(xb) + np.linalg.norm(r)),
+                np.linalg.norm(xb - np.linalg.solve(A, r)) / np.linalg.norm(xb),
+            )
+            for A, xb, r in zip(dense, x, rhs.numpy())
+        ]
+    for (backward, forward), (backward_ref, forward_ref) in zip(errors[True], errors[False]):
+        assert backward_ref < 1e-14 and backward < 1e-14
+        assert forward < 10 * forward_ref + 1e-12
 
 
 def test_banded_and_dense_solvers_reach_the_same_squeeze_equilibria():
