@@ -362,40 +362,48 @@ class MembraneSimulator:
     def onset_travel(self, indentation: Indentation) -> float:
         """Travel [m] along the direction at which the indenter first touches the inflated membrane.
 
-        Bisection on m(t) = min over outer vertices of the indenter's signed distance when moved by t d
+        Root of m(t) = min over outer vertices of the indenter's signed distance when moved by t d
         (negative: it already penetrates at its start pose, and backs off). Works for every supported
-        shape: it only needs the indenter's signed distance and its :func:`half_width`.
+        shape: it only needs the indenter's signed distance and its :func:`half_width`. Vectorized, in the
+        indenter's frame: the march evaluates 32 travels at a time, then each round evaluates 32 travels
+        inside the bracket (which shrinks 33x per round; 10 rounds narrow it as far as a 50-step bisection).
 
         Raises:
             WorkspaceError: the indenter is not clear of the membrane even 4 R_o back, or never touches it.
         """
-        x = self.inflated.positions[0][self.sensor.outer_vertices]
-        d = np.asarray(indentation.direction)
         body = self.indenter.with_pose(indentation.pose)
+        x = body.pose.inverse_apply(self.inflated.positions[0][self.sensor.outer_vertices])
+        d = np.asarray(indentation.direction)
+        d_local = body.pose.rotation.inv().apply(d)
 
-        def gap(t):
-            return float(body.signed_distance(x - t * d).min())
+        def first_touch(t: np.ndarray) -> int:
+            """Index of the first travel of ``t`` at which the bodies touch (len(t): none)."""
+            gap = body.local_signed_distance((x[None] - t[:, None, None] * d_local).reshape(-1, 3))
+            return int(np.argmax(np.append(gap.reshape(len(t), -1).min(axis=1) <= 0, True)))
 
         # march from well outside in steps shorter than half the membrane's thickness and half the
-        # indenter's thinnest width (so neither passes through the other unseen), then bisect the first
+        # indenter's thinnest width (so neither passes through the other unseen), then narrow the first
         # bracket
         dims = self.sensor.dimensions
         step = 0.5 * min(dims.thickness, self._half_width)
         span = 4.0 * dims.outer_radius
-        lo = -span
-        if gap(lo) <= 0:
+        if first_touch(np.array([-span])) == 0:
             raise WorkspaceError(f"the indenter at {indentation.pose!r} is not clear of the membrane")
-        for hi in np.arange(lo + step, span + step, step):
-            if gap(hi) <= 0:
+        march = np.arange(-span + step, span + step, step)
+        k = len(march)
+        for begin in range(0, len(march), 32):
+            k = begin + first_touch(march[begin : begin + 32])
+            if k < min(begin + 32, len(march)):
                 break
-            lo = hi
-        else:
+        if k == len(march):
             raise WorkspaceError(
                 f"the indenter at {indentation.pose!r} moving along {d.tolist()} never touches the membrane"
             )
-        for _ in range(50):
-            mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if gap(mid) > 0 else (lo, mid)
+        lo, hi = (march[k - 1] if k else -span), march[k]
+        for _ in range(10):  # 33^10 > 2^50
+            inner = lo + (hi - lo) * np.arange(1, 33) / 33.0
+            k = first_touch(inner)
+            lo, hi = (inner[k - 1] if k else lo), (inner[k] if k < len(inner) else hi)
         return 0.5 * (lo + hi)
 
     def _body_frame(self, indentation: Indentation) -> np.ndarray:
