@@ -216,3 +216,51 @@ def test_a_row_wise_body_pose_moves_only_those_problems():
     _assert_same(c.take(np.array([0, 2, 4])), b.take(np.array([0, 2, 4])))  # the others as never moved
     with pytest.raises(ValueError, match=r"rows must lie in \[0, 5\)"):
         rows.set_body_pose("left", np.eye(4), rows=[7])
+
+
+def test_the_damping_shift_rewrites_only_the_problems_whose_damping_changed():
+    """The Levenberg-Marquardt diagonal shift on the device equals regularization + springs + damping x
+    unit for every problem after any sequence of damping changes, spring switches, row-wise materials and
+    row-wise state copies, while each update writes only the problems whose damping changed."""
+    solver, source = _solver(), _solver()
+    written = []
+    put_rows = solver._put_rows
+    solver._put_rows = lambda array, per, rows, values=0.0: (
+        written.append(sorted(np.asarray(rows).tolist())) if array is solver._diag_shift else None,
+        put_rows(array, per, rows, values),
+    )
+
+    def expect(damping):
+        shift = solver._diag_shift_base + np.asarray(damping)[:, None, None] * solver._damping_scale
+        device = solver._diag_shift.numpy().reshape(5, solver.rows_per_problem, 3)
+        np.testing.assert_array_equal(device, shift)
+
+    steps = [
+        ([0.0, 1e-3, 0.0, 0.0, 0.0], [1]),
+        ([0.0, 1e-3, 0.0, 2e-3, 0.0], [3]),
+        ([0.0, 3e-4, 0.0, 2e-3, 5e-3], [1, 4]),
+    ]
+    for damping, rows in steps:
+        written.clear()
+        solver._set_damping_shift(np.array(damping))
+        assert written == [rows]
+        expect(damping)
+    # the springs switch writes every problem's shift without damping: the next update writes the damped
+    solver._stabilize(np.array([True, False, True, False, True]))
+    expect(np.zeros(5))
+    damping = np.array([0.0, 3e-4, 0.0, 2e-3, 5e-3])
+    written.clear()
+    solver._set_damping_shift(damping)
+    assert written == [[1, 3, 4]]
+    expect(damping)
+    # a row-wise material drops those rows' damping; a row-wise copy takes the source's
+    solver.set_material(fem.Material(4e4, 0.35, 1000.0), rows=[3])
+    damping[3] = 0.0
+    expect(damping)
+    source._set_damping_shift(np.array([7e-4, 0.0, 0.0, 0.0, 0.0]))
+    solver.copy_state_from(source, rows=[0], into=[4])
+    damping[4] = 7e-4
+    expect(damping)
+    written.clear()
+    solver._set_damping_shift(damping)  # nothing changed: nothing written
+    assert written == []

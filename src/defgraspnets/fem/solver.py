@@ -820,6 +820,7 @@ class QuasiStaticSolver:
             self._stabilization_np = stab  # (B, N) spring constants [N/m], for _stabilize()
             self._diag_shift_base = shift
             self._damping_scale = damping
+            self._shift_damping = np.zeros(B)  # the damping that _diag_shift holds, per problem
             self._stabilization = wp.array(stab.reshape(-1), dtype=wp.float64, device=dev)
             self._diag_shift = wp.array(shift.reshape(-1, 3), dtype=wp.vec3d, device=dev)
             self.system.forget_factors()  # factorizations of the old materials' Hessians
@@ -828,6 +829,7 @@ class QuasiStaticSolver:
         self._stabilization_np[rows] = stab
         self._diag_shift_base[rows] = shift
         self._damping_scale[rows] = damping
+        self._shift_damping[rows] = 0.0
         self._put_rows(self._stabilization, N, rows, stab)
         self._put_rows(self._diag_shift, self.rows_per_problem, rows, shift)
         mask = np.zeros(B, dtype=bool)
@@ -1094,6 +1096,7 @@ class QuasiStaticSolver:
         self._last_change[into] = other._last_change[rows]
         self._factor_steps[into] = other._factor_steps[rows]
         self._diag_shift_base[into] = other._diag_shift_base[rows]  # with the source's spring state
+        self._shift_damping[into] = other._shift_damping[rows]
         self._factor_damping[into] = other._factor_damping[rows]
         self._gas_law[into] = other._gas_law[rows]
         self._gas_k = np.broadcast_to(np.asarray(self._gas_k, dtype=np.float64), (B,)).copy()
@@ -2131,11 +2134,22 @@ class QuasiStaticSolver:
         shift = self._diag_shift_base
         shift[:, :N, :] = (self._regularization_np + stab)[:, :, None]
         self._diag_shift.assign(shift.reshape(-1, 3))
+        self._shift_damping[:] = 0.0
 
     def _set_damping_shift(self, damping: np.ndarray) -> None:
-        """Diagonal shift <- regularization (and springs) + Levenberg-Marquardt ``damping`` (B,) E h."""
-        shift = self._diag_shift_base + damping[:, None, None] * self._damping_scale
-        self._diag_shift.assign(shift.reshape(-1, 3))
+        """Diagonal shift <- regularization (and springs) + Levenberg-Marquardt ``damping`` (B,) E h.
+
+        Writes only the problems whose damping changed (the whole batch's shift is B x 3 (N + D) floats,
+        uploaded at nearly every Newton pass of the exact-Hessian solves otherwise)."""
+        rows = np.flatnonzero(damping != self._shift_damping)
+        if not len(rows):
+            return
+        shift = self._diag_shift_base[rows] + damping[rows, None, None] * self._damping_scale[rows]
+        if len(rows) == self.batch_size:
+            self._diag_shift.assign(shift.reshape(-1, 3))
+        else:
+            self._put_rows(self._diag_shift, self.rows_per_problem, rows, shift)
+        self._shift_damping[rows] = damping[rows]
 
     def _newton_begin(self, run: _NewtonRun, mask: np.ndarray) -> None:
         """Start the Newton iterations of the masked problems at their current state and loads.
@@ -2324,7 +2338,8 @@ class QuasiStaticSolver:
         working &= ~esc
 
     def _linear_solve(self, rtol: float, refactor: np.ndarray | None = None) -> tuple[int, float]:
-        """H increment = rhs with the configured linear solver; returns (iterations, residual).
+        """H increment = rhs with the configured linear solver; returns (iterations, residual; nan where a
+        factorizing solver was spared computing it: the Newton loop checks its own residual and step).
         ``refactor``: problems whose stored factorization is out of date (direct and dense solvers; None:
         none, a second right-hand side of the same matrices)."""
         o, sysm = self.options, self.system
@@ -2333,11 +2348,11 @@ class QuasiStaticSolver:
         if self.linear_solver == "amg":
             return sysm.solve_amg(self._near_nullspace, rtol, o.cg_max_iterations)
         if self.linear_solver == "dense":
-            return sysm.solve_dense(refactor)
+            return sysm.solve_dense(refactor, residual=False)
         if self.linear_solver == "banded":
-            return sysm.solve_banded(refactor)
+            return sysm.solve_banded(refactor, residual=False)
         if self.linear_solver == "dense_banded":
-            return sysm.solve_dense_banded(refactor, o.banded_min_problems)
+            return sysm.solve_dense_banded(refactor, o.banded_min_problems, residual=False)
         return sysm.solve_direct(refactor)
 
     def _line_search(self, working: np.ndarray, max_step: float):

@@ -371,7 +371,11 @@ class BatchedSystem:
         return A.view(len(index), n, n)
 
     def solve_dense(
-        self, refactor: np.ndarray | None = None, memory_fraction: float = 0.5, todo: list[int] | None = None
+        self,
+        refactor: np.ndarray | None = None,
+        memory_fraction: float = 0.5,
+        todo: list[int] | None = None,
+        residual: bool = True,
     ) -> tuple[int, float]:
         """Batched dense factorization of each problem's Hessian on the system's device (PyTorch: cuSOLVER
         on CUDA, LAPACK on the CPU), exact to round-off.
@@ -385,7 +389,8 @@ class BatchedSystem:
         stays allocated). ``refactor`` as in :meth:`solve_direct`: a problem not marked solves with its
         stored factor by two triangular solves. ``todo``: the problems with a nonzero right-hand side where
         the caller has found them already (:meth:`solve_dense_banded`). Returns (1, largest relative residual
-        of the freshly factored chunks)."""
+        of the freshly factored chunks); ``residual=False``: (1, nan), without computing it (a batched
+        product and a device synchronization per chunk: the Newton loop checks its own residual)."""
         import torch
 
         n = 3 * self.pattern.rows_per_problem
@@ -420,12 +425,15 @@ class BatchedSystem:
                 )
             x = self._dense_substitute(ids, rhs)
             self._store_solution(increment, index, x)
-            if x.dim() == 3:  # the residual of the Newton step's right-hand side (the first column)
-                x = x[..., 0]
-            b_ = rhs[index] if rhs.dim() == 2 else rhs[index, :, 0]
-            res = torch.linalg.vector_norm(torch.bmm(A, x.unsqueeze(2)).squeeze(2) - b_, dim=1)
-            norm = torch.linalg.vector_norm(b_, dim=1).clamp_min(torch.finfo(torch.float64).tiny)
-            worst = max(worst, float((res / norm).max()))
+            if not residual:
+                worst = float("nan")
+            else:
+                if x.dim() == 3:  # the residual of the Newton step's right-hand side (the first column)
+                    x = x[..., 0]
+                b_ = rhs[index] if rhs.dim() == 2 else rhs[index, :, 0]
+                res = torch.linalg.vector_norm(torch.bmm(A, x.unsqueeze(2)).squeeze(2) - b_, dim=1)
+                norm = torch.linalg.vector_norm(b_, dim=1).clamp_min(torch.finfo(torch.float64).tiny)
+                worst = max(worst, float((res / norm).max()))
             del A, L, x
         fresh = set(fresh)
         reused = [p for p in todo if p not in fresh]
@@ -437,7 +445,7 @@ class BatchedSystem:
         return 1, worst
 
     def solve_dense_banded(
-        self, refactor: np.ndarray | None = None, banded_from: int = 12
+        self, refactor: np.ndarray | None = None, banded_from: int = 12, residual: bool = True
     ) -> tuple[int, float]:
         """:meth:`solve_dense` when fewer than ``banded_from`` problems need a new factorization,
         :meth:`solve_banded` otherwise (both exact; their factors are stored side by side and substituted
@@ -447,12 +455,14 @@ class BatchedSystem:
         even near 7 problems; over the whole FEM benchmark (100 squeeze ramps of that box) ``banded_from``
         4 / 8 / 12 / 16 / 32 took 89.6 / 79.1 / 75.6 / 77.6 / 81.0 s against 92.8 s dense. Which solver
         factors a problem depends on how many others factor with it, so its answer may differ in round-off
-        with the batch (as the batched banded solver's already may)."""
+        with the batch (as the batched banded solver's already may). ``residual`` as in
+        :meth:`solve_dense`."""
         if banded_from < 1:
             raise ValueError(f"banded_from must be >= 1, got {banded_from}")
         todo = self._problems_with_rhs()
         count = sum(1 for p in todo if p not in self._dense_factors or (refactor is not None and refactor[p]))
-        return (self.solve_banded if count >= banded_from else self.solve_dense)(refactor, todo=todo)
+        solve = self.solve_banded if count >= banded_from else self.solve_dense
+        return solve(refactor, todo=todo, residual=residual)
 
     def banded_layout(self) -> BlockTridiagonalLayout:
         """The block-tridiagonal layout of this system's pattern (built on first use)."""
@@ -462,7 +472,7 @@ class BatchedSystem:
         return self._banded_layout
 
     def solve_banded(
-        self, refactor: np.ndarray | None = None, todo: list[int] | None = None
+        self, refactor: np.ndarray | None = None, todo: list[int] | None = None, residual: bool = True
     ) -> tuple[int, float]:
         """Batched block-tridiagonal Cholesky of each problem's Hessian on the system's device, exact to
         round-off (:mod:`defgraspnets.fem.block_tridiagonal`): the vertices in breadth-first levels, the
@@ -514,7 +524,7 @@ class BatchedSystem:
                 del A
         self._store_solution(increment, torch.as_tensor(todo, device=dev), self._dense_substitute(todo, rhs))
         if fresh:
-            worst = self._relative_residual(fresh)
+            worst = self._relative_residual(fresh) if residual else float("nan")
         if dev.type == "cuda":
             torch.cuda.synchronize(dev)
         return 1, worst
