@@ -114,7 +114,10 @@ class SolverOptions:
             otherwise; :meth:`BatchedSystem.solve_dense_banded`) or "auto" (dense up to 900
             unknowns per problem on the CPU and 12000 on CUDA; above that amg on the CPU, cg on CUDA).
         banded_min_problems: the "dense_banded" solver factors this many problems or more at once with the
-            banded solver, fewer with the dense one (12: fastest of 4-32 on the FEM benchmark, one H100).
+            banded solver, fewer with the dense one. 4 since the banded substitution became batched products
+            (session 33, one H100, two pairs of runs in one lease: FEM benchmark 53.3 / 53.3 s against 57.9
+            / 53.0 s with 12, streamed poke benchmark 80.2 / 79.7 s against 87.8 / 83.7 s; 8: 52.3 and
+            88.9 s); 12 had been the fastest of 4-32 with triangular-solve substitutions (session 28).
         cg_rtol, cg_max_iterations: tightest Krylov tolerance (relative to the right-hand side) and cap; the
             tolerance of each Newton step follows the Eisenstat-Walker forcing term (inexact Newton).
         max_step_fraction: largest vertex or travel motion per Newton iteration, as a fraction of the mesh
@@ -219,7 +222,7 @@ class SolverOptions:
     max_newton_iterations: int = 40
     max_load_bisections: int = 10
     linear_solver: str = "auto"
-    banded_min_problems: int = 12
+    banded_min_problems: int = 4
     cg_rtol: float = 1e-8
     cg_max_iterations: int = 5000
     max_step_fraction: float = 0.1

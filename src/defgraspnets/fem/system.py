@@ -445,7 +445,7 @@ class BatchedSystem:
         return 1, worst
 
     def solve_dense_banded(
-        self, refactor: np.ndarray | None = None, banded_from: int = 12, residual: bool = True
+        self, refactor: np.ndarray | None = None, banded_from: int = 4, residual: bool = True
     ) -> tuple[int, float]:
         """:meth:`solve_dense` when fewer than ``banded_from`` problems need a new factorization,
         :meth:`solve_banded` otherwise (both exact; their factors are stored side by side and substituted
@@ -453,7 +453,9 @@ class BatchedSystem:
         fixed ~9 ms for any batch up to ~16 problems and then little per problem (one H100, the 960-vertex
         box: 1 / 16 / 100 problems dense 3.1 / 32.4 / 142.8 ms, banded 9.1 / 22.7 / 37.2 ms): one call breaks
         even near 7 problems; over the whole FEM benchmark (100 squeeze ramps of that box) ``banded_from``
-        4 / 8 / 12 / 16 / 32 took 89.6 / 79.1 / 75.6 / 77.6 / 81.0 s against 92.8 s dense. Which solver
+        4 / 8 / 12 / 16 / 32 took 89.6 / 79.1 / 75.6 / 77.6 / 81.0 s against 92.8 s dense (session 28, with
+        triangular-solve substitutions; since they are batched products 4 is the fastest of 4 / 8 / 12:
+        ``SolverOptions.banded_min_problems``, the solver's default, says by how much). Which solver
         factors a problem depends on how many others factor with it, so its answer may differ in round-off
         with the batch (as the batched banded solver's already may). ``residual`` as in
         :meth:`solve_dense`."""
