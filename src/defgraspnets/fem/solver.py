@@ -2148,10 +2148,7 @@ class QuasiStaticSolver:
         if not len(rows):
             return
         shift = self._diag_shift_base[rows] + damping[rows, None, None] * self._damping_scale[rows]
-        if len(rows) == self.batch_size:
-            self._diag_shift.assign(shift.reshape(-1, 3))
-        else:
-            self._put_rows(self._diag_shift, self.rows_per_problem, rows, shift)
+        self._put_rows(self._diag_shift, self.rows_per_problem, rows, shift)
         self._shift_damping[rows] = damping[rows]
 
     def _newton_begin(self, run: _NewtonRun, mask: np.ndarray) -> None:

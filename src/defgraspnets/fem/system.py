@@ -404,7 +404,7 @@ class BatchedSystem:
         else:
             budget = 2e9
         chunk = max(1, int(budget // bytes_per_problem))
-        worst = 0.0
+        worst = 0.0 if residual else float("nan")
         for ids in [fresh[i : i + chunk] for i in range(0, len(fresh), chunk)]:
             index = torch.as_tensor(ids, device=dev)
             A = self._dense_matrices(values, index)
@@ -425,9 +425,7 @@ class BatchedSystem:
                 )
             x = self._dense_substitute(ids, rhs)
             self._store_solution(increment, index, x)
-            if not residual:
-                worst = float("nan")
-            else:
+            if residual:
                 if x.dim() == 3:  # the residual of the Newton step's right-hand side (the first column)
                     x = x[..., 0]
                 b_ = rhs[index] if rhs.dim() == 2 else rhs[index, :, 0]
