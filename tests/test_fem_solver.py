@@ -334,6 +334,55 @@ def test_factorizing_solvers_match_numpy_with_lu_fallback_and_factor_reuse(metho
     assert not system._dense_factors
 
 
+@pytest.mark.parametrize("method", ["dense", "banded", "dense_banded"])
+def test_factorizing_solvers_report_indefinite_problems_instead_of_lu(method):
+    """``report_indefinite``: a marked problem whose matrix is not positive definite gets no factor and a zero
+    increment and is flagged in ``indefinite`` (the Newton loop damps it instead of taking an LU step); an
+    unmarked one still falls back to LU, and positive definite ones are solved whatever the mark. A factor
+    kept from an earlier solve of a reported problem is dropped."""
+    import warp as wp
+
+    from defgraspnets.fem.system import BatchedSystem, BlockPattern
+
+    mesh = fem.TetMesh.box(size=(L, L, L), divisions=(2, 2, 4))
+    pattern = BlockPattern.build(mesh, num_dofs=2)
+    B, n = 4, 3 * pattern.rows_per_problem
+    rng = np.random.default_rng(2)
+    dense, values = symmetric_pattern_matrices(pattern, B, [True, False, False, True], rng)
+    system = BatchedSystem(pattern, B, "cpu")
+    system.keep_factors = True
+    system.values.assign(wp.array(values, dtype=wp.mat33d, device="cpu"))
+    solve = getattr(system, f"solve_{method}")
+    kwargs = {"banded_from": 1} if method == "dense_banded" else {}
+    rhs = rng.normal(size=(B, n))
+    system.rhs.assign(rhs.reshape(-1, 3))
+    solve(**kwargs)  # nothing marked: both indefinite problems by LU
+    assert not system.indefinite.any() and sorted(system._dense_factors) == [0, 1, 2, 3]
+    system.report_indefinite = np.array([True, True, False, False])
+    solve(refactor=np.ones(B, dtype=bool), **kwargs)
+    np.testing.assert_array_equal(system.indefinite, [False, True, False, False])
+    x = system.increment.numpy().reshape(B, n)
+    np.testing.assert_array_equal(x[1], 0.0)
+    for b in (0, 2, 3):
+        np.testing.assert_allclose(x[b], np.linalg.solve(dense[b], rhs[b]), rtol=1e-8, atol=1e-12)
+    assert sorted(system._dense_factors) == [0, 2, 3]  # problem 1's kept LU factor dropped
+    np.testing.assert_array_equal(system.fresh_factor, True)
+    np.testing.assert_array_equal(system.factorizations, [2, 2, 2, 2])
+    # every problem marked, problem 2 keeps its LU factor (not refactored): it is solved with it; problem 1
+    # has no stored factor, so it is factored again and reported again
+    system.report_indefinite = np.ones(B, dtype=bool)
+    rhs = rng.normal(size=(B, n))
+    system.rhs.assign(rhs.reshape(-1, 3))
+    solve(refactor=np.array([True, False, False, True]), **kwargs)
+    np.testing.assert_array_equal(system.indefinite, [False, True, False, False])
+    x = system.increment.numpy().reshape(B, n)
+    np.testing.assert_array_equal(x[1], 0.0)
+    for b in (0, 2, 3):
+        np.testing.assert_allclose(x[b], np.linalg.solve(dense[b], rhs[b]), rtol=1e-8, atol=1e-12)
+    np.testing.assert_array_equal(system.factorizations, [3, 3, 2, 3])
+    assert sorted(system._dense_factors) == [0, 2, 3]
+
+
 def test_dense_banded_solver_factors_few_problems_densely_and_many_banded():
     """solve_dense_banded: below ``banded_from`` problems to factor the dense Cholesky, from it on the
     banded one; either way the solutions are numpy's, and kept factors of both kinds serve a second

@@ -107,6 +107,34 @@ def test_poke_dataset_round_trip_and_resume(sensor, tmp_path):
     assert again["skipped"] == -1
 
 
+@pytest.mark.slow
+def test_indefinite_exact_hessians_are_damped_not_lu_solved(sensor, tmp_path, monkeypatch):
+    """A tilted poke whose exact Hessian turns indefinite (path 4 of the grid: 3 Newton steps on the 2-core
+    CPU): those steps get Levenberg-Marquardt damping instead of an LU step (``report_indefinite``), no LU
+    factorization is ever made, and all five readings converge (~25 s)."""
+    from defgraspnets.fem.system import BatchedSystem
+
+    seen = {"indefinite": 0, "lu": 0}
+    solve_banded = BatchedSystem.solve_banded
+
+    def spy(self, *args, **kwargs):
+        out = solve_banded(self, *args, **kwargs)
+        seen["indefinite"] += int(self.indefinite.sum())
+        factors = self._dense_factors.values()
+        seen["lu"] += sum(f[0] == "lu" or (f[0] == "banded" and f[1].lu) for f in factors)
+        return out
+
+    monkeypatch.setattr(BatchedSystem, "solve_banded", spy)
+    kwargs = dict(closed=True, stride=4, limit=4, shard_index=1, shard_count=4, intrinsics=CAMERA)
+    out = tmp_path / "poke.h5"
+    counts = generate_tactile_dataset(
+        "poke", out, sensor, SphereIndenter(radius=0.01), 1500.0, progress=False, **kwargs
+    )
+    assert counts["samples"] == 5 and counts["failed"] == 0
+    np.testing.assert_array_equal(read_tactile_shard(out).samples.sample_id, np.arange(20, 25))
+    assert seen["indefinite"] > 0 and seen["lu"] == 0
+
+
 def test_forearm_shear_drags_the_membrane_and_resumes(sensor, tmp_path):
     forearm = CapsuleIndenter(radius=0.04, length=0.2)
     grid = dict(enumerate(forearm_grid()))

@@ -180,6 +180,13 @@ class BatchedSystem:
         self.factorizations = np.zeros(batch_size, dtype=np.int64)
         #: per problem: the last direct or dense solve used a factorization made in that call
         self.fresh_factor = np.zeros(batch_size, dtype=bool)
+        #: (B,) bool or None, set by the caller: problems whose matrix, if its Cholesky factorization breaks
+        #: down (not positive definite), is reported in :attr:`indefinite` with a zero increment instead of
+        #: being factored by LU (dense, banded, dense_banded); the others fall back to LU as documented
+        self.report_indefinite = None
+        #: per problem: the last factorizing solve found its matrix not positive definite and, as
+        #: :attr:`report_indefinite` asked, neither factored nor solved it (increment zero, no stored factor)
+        self.indefinite = np.zeros(batch_size, dtype=bool)
         #: a second right-hand side per problem ((B, 3R) torch tensor on the device, or None) that the
         #: factorizing solves (dense, banded, dense_banded) solve with the same factors in the same
         #: substitutions as ``rhs``, into :attr:`extra_increment`; the caller clears it
@@ -228,6 +235,7 @@ class BatchedSystem:
         without a stored one. Records ``fresh_factor`` and counts them in ``factorizations``."""
         fresh = [p for p in todo if p not in stored or (refactor is not None and refactor[p])]
         self.fresh_factor[:] = False
+        self.indefinite[:] = False
         self.fresh_factor[fresh] = True
         self.factorizations[fresh] += 1
         return fresh
@@ -383,7 +391,8 @@ class BatchedSystem:
         One problem of R block rows is a dense (3R x 3R) float64 matrix (2883 unknowns: 66 MB); problems
         are factored in chunks that fit ``memory_fraction`` of the free device memory. Cholesky first; a
         problem whose matrix is not positive definite (the exact, unprojected Hessian away from a stable
-        equilibrium) is solved by LU with partial pivoting instead. Problems whose right-hand side is zero
+        equilibrium) is solved by LU with partial pivoting instead, or, where :attr:`report_indefinite`
+        marks it, left unsolved and flagged in :attr:`indefinite`. Problems whose right-hand side is zero
         (converged or inactive) are skipped. The factors are kept until the matrix changes (:meth:`zero`),
         or, with ``keep_factors``, until :meth:`forget_factors` (one (3R)^2 float64 factor per problem
         stays allocated). ``refactor`` as in :meth:`solve_direct`: a problem not marked solves with its
@@ -418,11 +427,21 @@ class BatchedSystem:
                 # kept factors are copied out of the batch, which would otherwise stay allocated as a whole
                 L = [L[k].clone() if self.keep_factors else L[k] for k in range(len(ids))]
                 info = info.tolist()
+            report = self._reported(ids, info)
             for k, p in enumerate(ids):
-                # not positive definite (exact Hessian off a stable equilibrium): LU with partial pivoting
+                # not positive definite (exact Hessian off a stable equilibrium): LU with partial pivoting,
+                # or reported unsolved (report_indefinite)
+                if p in report:
+                    self._dense_factors.pop(p, None)  # an earlier (kept) factorization is out of date
+                    continue
                 self._dense_factors[p] = (
                     ("lu", *torch.linalg.lu_factor(A[k])) if info[k] else ("cholesky", L[k])
                 )
+            if report:
+                keep = [k for k, p in enumerate(ids) if p not in report]
+                ids, index, A = [ids[k] for k in keep], index[keep], A[keep]
+                if not ids:
+                    continue
             x = self._dense_substitute(ids, rhs)
             self._store_solution(increment, index, x)
             if residual:
@@ -481,7 +500,8 @@ class BatchedSystem:
         All problems to factor go in one batch (a factor holds sum_i s_i (s_i + s_{i-1}) + n_v n_t + n_t^2
         float64 per problem: 17 MB for the 960-vertex box, against 66 MB dense). A problem whose matrix
         is not positive definite is factored by block LU (partial pivoting inside the blocks), and by
-        dense LU with partial pivoting if a pivot block is singular. ``refactor``, skipped problems and
+        dense LU with partial pivoting if a pivot block is singular (or flagged unsolved,
+        :attr:`report_indefinite`). ``refactor``, skipped problems and
         kept factors and ``todo`` as in :meth:`solve_dense`. Returns (1, largest relative residual of the
         freshly factored problems)."""
         import torch
@@ -512,9 +532,17 @@ class BatchedSystem:
             # CUDA: one batch; CPU: one problem at a time (batched BLAS calls round differently for other
             # batch sizes, and a problem's answer must not depend on its batch; LAPACK loops anyway)
             batches = [fresh] if dev.type == "cuda" else [[p] for p in fresh]
-            # not positive definite (exact Hessian off a stable equilibrium): block LU with partial pivoting
-            # inside the blocks, and dense LU where a pivot block is singular
+            # not positive definite (exact Hessian off a stable equilibrium): reported unsolved
+            # (report_indefinite), or block LU with partial pivoting inside the blocks, and dense LU where
+            # a pivot block is singular
             indefinite = [p for ids in batches for p in factor(ids, lu=False)]
+            report = self._reported(indefinite, [1] * len(indefinite))
+            if report:
+                for p in report:
+                    del self._dense_factors[p]  # its broken factorization must not be used
+                indefinite = [p for p in indefinite if p not in report]
+                todo = [p for p in todo if p not in report]
+                fresh = [p for p in fresh if p not in report]
             batches = [indefinite] if dev.type == "cuda" else [[p] for p in indefinite]
             singular = [p for ids in batches if ids for p in factor(ids, lu=True)]
             if singular:
@@ -522,12 +550,23 @@ class BatchedSystem:
                 for k, p in enumerate(singular):
                     self._dense_factors[p] = ("lu", *torch.linalg.lu_factor(A[k]))
                 del A
-        self._store_solution(increment, torch.as_tensor(todo, device=dev), self._dense_substitute(todo, rhs))
+        if todo:
+            x = self._dense_substitute(todo, rhs)
+            self._store_solution(increment, torch.as_tensor(todo, device=dev), x)
         if fresh:
             worst = self._relative_residual(fresh) if residual else float("nan")
         if dev.type == "cuda":
             torch.cuda.synchronize(dev)
         return 1, worst
+
+    def _reported(self, ids: list[int], info) -> set[int]:
+        """The problems of ``ids`` whose Cholesky factorization broke down (``info`` nonzero, per problem)
+        and that :attr:`report_indefinite` asks to report: marked in :attr:`indefinite`, not solved."""
+        if self.report_indefinite is None:
+            return set()
+        report = {p for p, i in zip(ids, info) if i and self.report_indefinite[p]}
+        self.indefinite[list(report)] = True
+        return report
 
     def _relative_residual(self, problems: list[int]) -> float:
         """max over ``problems`` of |H increment - rhs| / |rhs| (one batched sparse product)."""

@@ -79,14 +79,17 @@ def exact_linear_solver(device) -> str:
     (the thin shell's breadth-first levels are narrow rings; 2-core CPU, 8 poke paths of the default
     benchmark: 229 s against 317 s with SuperLU, a pole poke on the 3747-vertex membrane 18 s against
     38 s, the same wrenches), and on the GPU ``dense_banded``: the batched block-tridiagonal Cholesky
-    when at least 12 problems need a factorization, one dense Cholesky per problem when fewer do (the
+    when at least ``SolverOptions.banded_min_problems`` (4) problems need a factorization, one dense
+    Cholesky per problem when fewer do (the
     banded solver's fixed cost per call is ~3x a dense factorization's on small batches). Measured on one
     H100 (192 poke paths of the grid, cap 8, 20 mm sphere, 960 states): in batches of 64 paths 264.0 s
     dense, 229.9 s banded; streamed through 64 problems (:meth:`MembraneSimulator.indent_stream`, the
     batch stays full) 232.9 s dense, 164.8 s banded. (Before the load steps ran without a barrier, in
     lockstep, dense and banded tied: 102.1 and 104.4 s for 64 paths.) Streamed through 128 problems, on
     another lease: banded 145.8 s, ``dense_banded`` 127.8 s (its switch point comes from the FEM box,
-    ``benchmark_fem.py``; a few paths' tails then factor densely)."""
+    ``benchmark_fem.py``; a few paths' tails then factor densely). The whole 10,000-state grid streamed
+    through 128 problems (session 34, before indefinite exact Hessians were damped instead of LU-solved):
+    671 s, 59 readings failed (``benchmarks/tactile_poke_cuda_full_grid_h100_s34.json``)."""
     import warp as wp
 
     wp.init()
