@@ -65,6 +65,8 @@ def main(cfg: DictConfig) -> None:
         "states": states,
         "samples": counts["samples"],
         "failed": counts["failed"],
+        # the batch's Newton passes (device-independent work; absent where the shard was already finished)
+        "newton_passes": counts.get("newton_passes"),
         "seconds": round(counts["seconds"], 3),
         "seconds_per_state": round(per_state, 4),
         "grid_states": grid,

@@ -32,6 +32,9 @@ def test_benchmark_tactile_times_one_poke_path(tmp_path):
     assert record["paths"] == 1 and record["states"] == 5 == record["samples"] + record["failed"]
     assert record["samples"] == 5  # the pole poke, 0.5 to 2.5 cm, converges on the coarse membrane
     assert record["seconds"] > 0
+    # one path of 5 readings from contact onset: at least one Newton pass per load step (the pole poke goes
+    # 2.5 cm deep in steps of at most 2 mm), a few per step, inflation not counted
+    assert 13 <= record["newton_passes"] <= 40 * 13
     assert record["seconds_per_state"] == pytest.approx(record["seconds"] / 5, rel=1e-3)
     assert record["grid_states"] == 10_000 and record["goal_minutes"] == 10.0
     assert record["extrapolated_grid_minutes"] == pytest.approx(

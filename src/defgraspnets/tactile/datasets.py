@@ -638,8 +638,9 @@ def generate_tactile_dataset(
             :func:`~defgraspnets.tactile.sensor.membrane_solver_options`).
 
     Returns:
-        counts of :func:`generate_tactile_shard` plus ``path``, ``seconds`` and the simulator's
-        ``solver_options`` (absent when the shard was already finished).
+        counts of :func:`generate_tactile_shard` plus ``path``, ``seconds``, the simulator's
+        ``solver_options`` and the batch's ``newton_passes`` while solving the paths (absent when the
+        shard was already finished).
 
     Raises:
         ValueError: unknown experiment, ``repeats`` < 1 (or > 1 for poking), a bad perturbation
@@ -691,11 +692,18 @@ def generate_tactile_dataset(
         config_yaml=config_text,
         store_points=store_points,
     )
+    passes = sim.solver.newton_passes
     counts = generate_tactile_shard(
         sim, paths, writer, max_step=max_step, progress=progress, barrier=barrier, stream=stream
     )
     writer.finalize()
-    counts.update(path=str(out_path), seconds=time.perf_counter() - t0, solver_options=sim.solver.options)
+    counts.update(
+        path=str(out_path),
+        seconds=time.perf_counter() - t0,
+        solver_options=sim.solver.options,
+        # the batch's Newton passes while solving the paths (one assembly each, for all problems iterating)
+        newton_passes=sim.solver.newton_passes - passes,
+    )
     return counts
 
 
