@@ -179,8 +179,9 @@ class SolverOptions:
             (not positive definite) is damped at once, without a step (``BatchedSystem.report_indefinite``),
             instead of being solved by LU: of 8 such LU steps in 4 poke paths of the membrane (2-core CPU), 6
             were rejected by the line search and 1 cut back. Measured on one H100 (192 poke paths streamed
-            through 128 problems, dense_banded, one pair of runs in one lease): 83.7 -> 64.4 s (the LU
-            factorizations and their per-block substitutions went); FEM benchmark 53.8 -> 52.0 s.
+            through 128 problems, dense_banded, one pair of runs in one lease, not profiled): 83.7 -> 64.4 s
+            (what it removes: the block-LU factorizations and their per-block LU substitutions); FEM
+            benchmark 53.8 -> 52.0 s.
         max_factor_reuse: chord (modified) Newton for the factorizing linear solvers (FACTORIZING_SOLVERS):
             a problem's factorization serves up to this many further Newton steps (also across its load
             increments) before it is factored anew; 0: every step factors its own Hessian (plain Newton);

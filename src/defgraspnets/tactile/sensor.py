@@ -80,8 +80,8 @@ def exact_linear_solver(device) -> str:
     benchmark: 229 s against 317 s with SuperLU, a pole poke on the 3747-vertex membrane 18 s against
     38 s, the same wrenches), and on the GPU ``dense_banded``: the batched block-tridiagonal Cholesky
     when at least ``SolverOptions.banded_min_problems`` (4) problems need a factorization, one dense
-    Cholesky per problem when fewer do (the
-    banded solver's fixed cost per call is ~3x a dense factorization's on small batches). Measured on one
+    Cholesky per problem when fewer do (the banded solver's fixed cost per call is ~3x a dense
+    factorization's on small batches). Measured on one
     H100 (192 poke paths of the grid, cap 8, 20 mm sphere, 960 states): in batches of 64 paths 264.0 s
     dense, 229.9 s banded; streamed through 64 problems (:meth:`MembraneSimulator.indent_stream`, the
     batch stays full) 232.9 s dense, 164.8 s banded. (Before the load steps ran without a barrier, in
