@@ -2249,28 +2249,28 @@ class QuasiStaticSolver:
         conv = working & (res <= tol)
         # (problems re-lagged at every iteration were re-lagged at this very state: consistent)
         frozen = conv & (run.iters >= o.friction_relag_iterations) & ~run.relag_every
-        if frozen.any():
-            # lag consistency: the converged state's own friction capacities must equal the lagged ones
-            stale = self._friction_inconsistent(frozen, tol)
-            stale &= run.relags < o.max_friction_relags
+
+        def relag_stale(checked: np.ndarray, tolerance: np.ndarray) -> np.ndarray:
+            """Problems of ``checked`` whose lags are inconsistent beyond ``tolerance``, within their re-lag
+            budget: re-lagged (Aitken-extrapolated) at the next pass, each starting a new Newton solve of
+            the updated potential with its own iteration budget."""
+            stale = self._friction_inconsistent(checked, tolerance) & (run.relags < o.max_friction_relags)
             run.relags[stale] += 1
             run.relag |= stale
-            # each re-lag starts a new Newton solve of the updated potential, with its own budget
             run.last_relag[stale] = run.iters[stale]
-            conv &= ~stale
-            run.stale = stale
+            run.stale |= stale
+            return stale
+
+        if frozen.any():
+            # lag consistency: the converged state's own friction capacities must equal the lagged ones
+            conv &= ~relag_stale(frozen, tol)
         if o.friction_lag_check > 1:
             # nearly converged with frozen lags: a lag error well above the residual will not go away in the
             # last iterations (the normal forces move by about the residual): re-lag now
             near = working & ~conv & (res <= o.friction_lag_check * tol)
             near &= (run.iters >= o.friction_relag_iterations) & ~run.relag_every & ~run.relag
             if near.any():
-                early = self._friction_inconsistent(near, 10.0 * res)
-                early &= run.relags < o.max_friction_relags
-                run.relags[early] += 1
-                run.relag |= early
-                run.last_relag[early] = run.iters[early]
-                run.stale = run.stale | early  # Aitken-extrapolated, as the re-lags of converged states
+                relag_stale(near, 10.0 * res)
         if log.isEnabledFor(logging.DEBUG):
             b0 = int(np.argmax(working))
             log.debug("newton it %d problem %d residual %.3e tol %.3e", run.iters[b0], b0, res[b0], tol[b0])
