@@ -156,6 +156,72 @@ def test_a_problem_flagged_by_its_start_reports_every_level_and_the_queue_goes_o
     assert all(got[(j, STEPS - 1)].converged[0] for j in (0, 2, 3))
 
 
+def _moved_pads(solver: fem.QuasiStaticSolver, job: int, lift: float, angle: float) -> dict:
+    """Poses of grasp ``job``'s pads lifted by ``lift`` [m] along z and turned by ``angle`` [rad] about the
+    grip axis y (through the box centre): the held box is dragged along (shear, twist)."""
+    c, s = np.cos(angle), np.sin(angle)
+    motion = np.eye(4)
+    motion[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+    motion[2, 3] = lift
+    return {name: motion @ solver._poses[job, solver._body(name)] for name in ("left", "right")}
+
+
+def test_jobs_that_move_bodies_stream_as_solves_with_body_poses():
+    """Levels with "body_poses" drag the contacts as solve(body_poses=...) does: five jobs (grip harder,
+    lift the pads, lift and twist them) through two problems reach the equilibria of one batch solving
+    the levels with solve(), bit for bit, and every pad ends at the pose its job asked for."""
+    template = _solver()
+    moves = [(0.0, 0.0), (0.001, 0.0), (0.0015, 0.05)]  # (lift [m], twist [rad]) per level
+
+    def poses(level):  # (B, 4, 4) per pad: every job's pose at this level
+        return {
+            name: np.stack([_moved_pads(template, j, *moves[level])[name] for j in range(5)])
+            for name in ("left", "right")
+        }
+
+    expected = _solver()
+    want = [
+        expected.solve(targets={"grip": FORCES}),
+        expected.solve(body_poses=poses(1)),
+        expected.solve(targets={"grip": 1.2 * FORCES}, body_poses=poses(2)),
+    ]
+    jobs = [
+        [
+            {"grip": float(FORCES[j])},
+            {"body_poses": _moved_pads(template, j, *moves[1])},
+            {"grip": float(1.2 * FORCES[j]), "body_poses": _moved_pads(template, j, *moves[2])},
+        ]
+        for j in range(5)
+    ]
+    solver = _solver(OFFSETS[:2])
+    got, final, holder = {}, {}, {}
+
+    def start(problems, job_ids):
+        solver.copy_state_from(template, rows=job_ids, into=problems)
+        holder.update(zip(job_ids.tolist(), problems.tolist()))
+
+    def on_levels(job_ids, levels, part):
+        for i, (j, k) in enumerate(zip(job_ids.tolist(), levels.tolist())):
+            got[(j, k)] = _row(part, i)
+            if k == 2:  # its problem still holds job j: the pads' poses
+                final[j] = solver._poses[holder[j]].copy()
+
+    solver.solve_stream(jobs, start, on_levels)
+    for j in range(5):
+        for k in range(3):
+            _assert_same(_row(want[k], j), got[(j, k)])
+        assert got[(j, 2)].converged[0]
+        np.testing.assert_array_equal(final[j], expected._poses[j])
+        np.testing.assert_allclose(final[j][0], jobs[j][2]["body_poses"]["left"], atol=1e-15)
+    # the box went up with the pads: its mean lift is the pads' (1.5 mm) within a tenth
+    lift = got[(0, 2)].displacement[0][:, 2].mean() - got[(0, 0)].displacement[0][:, 2].mean()
+    assert lift == pytest.approx(0.0015, rel=0.1)
+    with pytest.raises(KeyError, match="no rigid body named 'thumb'"):
+        solver.solve_stream([[{"body_poses": {"thumb": np.eye(4)}}]], start, on_levels)
+    with pytest.raises(ValueError, match="pose of body 'left' in level 0 of job 0 must be 4x4"):
+        solver.solve_stream([[{"body_poses": {"left": np.eye(3)}}]], start, on_levels)
+
+
 def test_jobs_are_checked():
     solver = _solver(OFFSETS[:2])
 

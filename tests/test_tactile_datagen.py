@@ -32,6 +32,7 @@ from defgraspnets.tactile.indenters import (
     poke_grid,
 )
 from defgraspnets.tactile.membrane import build_membrane
+from defgraspnets.tactile.sensor import MembraneSimulator
 
 CAMERA = PICO_FLEXX.scaled(0.25)
 
@@ -439,3 +440,47 @@ def test_streamed_poke_paths_match_batches_and_resume(small_sensor, tmp_path):
     )
     np.testing.assert_array_equal(b.params[order_b], a.params[order_a])
     np.testing.assert_allclose(b.indenter_pose[order_b], a.indenter_pose[order_a], atol=1e-9)
+
+
+def test_streamed_forearm_paths_match_batches_and_resume(small_sensor, tmp_path, monkeypatch):
+    """stream=True for the forearm's press-and-move paths: shears and a twist of different lengths flow
+    through two problems (press_and_move_stream); the shard holds the samples the batches give, to the
+    solver's tolerance, and a second run appends only the paths not yet written."""
+    grid = dict(enumerate(forearm_grid()))
+    nominal = forearm_paths(grid, FOREARM, small_sensor)
+    shears = [p for p in nominal if p.params[0, 3] == 0.005 and p.params[0, 4] in (0.0, np.pi / 2)]
+    twist = next(p for p in nominal if p.params[0, 3] == 0.005 and p.params[0, 6] > 0)
+    paths = [  # shears of 3, 6 (, 9) mm along x and y; twists of 7.5 and 15 deg
+        TactilePath(p.indentation, p.ids[rows], p.params[rows], motions=p.motions[rows])
+        for p, rows in zip([*shears, twist], (slice(2, 4), slice(2, 5), slice(0, 2)))
+    ]
+    assert len(paths) == 3 and paths[2].params[1, 6] > paths[2].params[0, 6] > 0
+    streamed = []
+    original = MembraneSimulator.press_and_move_stream
+
+    def spy(self, indentations, *args, **kwargs):
+        streamed.append(len(indentations))
+        return original(self, indentations, *args, **kwargs)
+
+    monkeypatch.setattr(MembraneSimulator, "press_and_move_stream", spy)
+    shards = {}
+    for stream in (False, True):
+        sim = make_simulator(small_sensor, FOREARM, 1500.0, closed=True, batch_size=2, intrinsics=CAMERA)
+        out = tmp_path / f"forearm_{stream}.h5"
+        writer = TactileShardWriter(out, sensor_references(sim), "forearm")
+        first = generate_tactile_shard(sim, paths[:2], writer, progress=False, stream=stream)
+        counts = generate_tactile_shard(sim, paths, writer, progress=False, stream=stream)
+        assert first["samples"] == 5 and first["failed"] == 0
+        assert counts["skipped"] == 2 and counts["paths"] == 1 and counts["samples"] == 2
+        writer.finalize()
+        shards[stream] = read_tactile_shard(out).samples
+    assert streamed == [2, 1]  # the streamed runs: all paths of any length in one stream, then the rest
+    a, b = shards[False], shards[True]
+    order_a, order_b = np.argsort(a.sample_id), np.argsort(b.sample_id)
+    np.testing.assert_array_equal(b.sample_id[order_b], a.sample_id[order_a])
+    np.testing.assert_array_equal(b.params[order_b], a.params[order_a])
+    np.testing.assert_allclose(b.indenter_pose[order_b], a.indenter_pose[order_a], atol=1e-9)
+    np.testing.assert_allclose(
+        b.wrench[order_b], a.wrench[order_a], rtol=0, atol=5e-3 * np.abs(a.wrench).max()
+    )
+    assert np.abs(b.wrench[:, :2]).max() > 0.05  # N: the shears drag the sensor sideways

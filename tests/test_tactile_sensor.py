@@ -8,6 +8,7 @@ from scipy.spatial.transform import Rotation
 from defgraspnets.tactile.camera import PICO_FLEXX
 from defgraspnets.tactile.indenters import (
     BoxIndenter,
+    CapsuleIndenter,
     IndenterError,
     Pose,
     RingIndenter,
@@ -190,6 +191,59 @@ def test_a_stream_of_paths_through_a_smaller_batch_reads_as_each_path_alone(sens
         sim.indent_stream(paths, [1.0], on_readings, friction=[0.5])
     with pytest.raises(WorkspaceError, match="never touches"):
         sim.indent_stream([away], [1.0], on_readings)
+
+
+def test_a_stream_of_press_and_move_paths_reads_as_each_path_alone(sensor):
+    """press_and_move_stream: three forearm paths (two shears, one twist) through two problems read as
+    press_and_move reads each path in a batch of one, bit for bit, poses included; bad motions are named."""
+    forearm = CapsuleIndenter(radius=0.04, length=0.2)
+
+    def simulator(batch_size):
+        return MembraneSimulator(
+            sensor,
+            forearm,
+            _gas(sensor),
+            batch_size=batch_size,
+            friction=0.5,
+            intrinsics=PICO_FLEXX.scaled(0.25),
+        )
+
+    sim = simulator(2)
+    top = Pose(sensor.dimensions.outer_pole + [0.0, 0.0, forearm.radius + 0.01])
+    press = Indentation(top, 0.005, (0.0, 0.0, -1.0))
+
+    def motion(shift=(0.0, 0.0, 0.0), twist=0.0):
+        m = np.eye(4)
+        m[:3, :3] = Rotation.from_rotvec([0.0, 0.0, twist]).as_matrix()
+        m[:3, 3] = shift
+        return m
+
+    motions = [
+        np.stack([motion((0.003, 0.0, 0.0)), motion((0.006, 0.0, 0.0))]),  # along the forearm
+        np.stack([motion((0.0, -0.004, 0.0))]),  # across it
+        np.stack([motion(twist=0.2), motion(twist=0.4)]),  # a twist about the sensor axis
+    ]
+    got = {}
+    sim.press_and_move_stream([press] * 3, motions, lambda i, readings: got.__setitem__(i, readings))
+    assert sorted(got) == [0, 1, 2]
+    for i, m in enumerate(motions):  # a fresh simulator each: a withdrawn membrane is not the inflated one
+        expected = [level[0] for level in simulator(1).press_and_move([press], m[:, None])]
+        assert len(got[i]) == len(expected) == len(m)
+        for a, b in zip(expected, got[i], strict=True):
+            assert a.converged and b.converged
+            np.testing.assert_array_equal(b.positions, a.positions)
+            np.testing.assert_array_equal(b.base_wrench, a.base_wrench)
+            np.testing.assert_array_equal(b.depth.depth, a.depth.depth)
+            np.testing.assert_array_equal(b.indenter_pose.to_array(), a.indenter_pose.to_array())
+    # friction drags the sensor along each motion: +x and -y forces, a torque about +z for the twist
+    assert got[0][1].base_wrench[0] > got[0][0].base_wrench[0] > 0
+    assert got[1][0].base_wrench[1] < 0
+    assert got[2][0].base_wrench[5] > 0 and got[2][1].base_wrench[5] > 0  # slipping from 0.2 rad on
+    np.testing.assert_allclose(got[0][1].indenter_pose.position[0], top.position[0] + 0.006, atol=1e-12)
+    with pytest.raises(ValueError, match="one sequence of motions per path"):
+        sim.press_and_move_stream([press] * 2, motions, lambda i, r: None)
+    with pytest.raises(ValueError, match=r"motions of path 0 must have shape \(L, 4, 4\)"):
+        sim.press_and_move_stream([press], [np.eye(4)], lambda i, r: None)
 
 
 def test_closed_capsule_is_stiffer_than_open(sensor, open_sim):

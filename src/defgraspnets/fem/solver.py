@@ -1785,7 +1785,7 @@ class QuasiStaticSolver:
         try:
             self._stream(
                 B,
-                lambda jobs, problems: [table[:, j] for j in jobs],
+                lambda jobs, problems: [(table[:, j], None) for j in jobs],
                 None,
                 reached,
                 None if check is None else (lambda jobs, steps, part: check(steps, part, jobs)),
@@ -1819,7 +1819,11 @@ class QuasiStaticSolver:
         Args:
             jobs: a sequence of jobs; job j is a sequence of dicts dof name -> scalar target (force [N] or
                 travel [m]), its levels; unnamed dofs keep their previous level's targets (the first
-                level's: those of the problem after ``start``).
+                level's: those of the problem after ``start``). A level may also move bodies: the key
+                ``"body_poses"`` maps body names to 4x4 poses, reached as ``solve(body_poses=...)``
+                reaches them (along the geodesic with the load fraction, dragging the contacts: shear,
+                twist); unnamed bodies keep their previous level's poses (the first level's: the
+                problem's after ``start``).
             start: ``start(problems, job_ids)`` must put the problems (integer indices) into the start states
                 of the jobs, e.g. :meth:`copy_state_from` a solved template problem (``into=problems``) and
                 :meth:`set_body_pose` (``rows=problems``); it must not touch the other problems. Called
@@ -1835,6 +1839,7 @@ class QuasiStaticSolver:
             progress: a progress bar over the jobs.
         """
         jobs = list(jobs)
+        moving = False  # some level moves a body: the load paths interpolate poses
         for j, job in enumerate(jobs):
             if isinstance(job, Mapping) or not len(job):
                 raise ValueError(f"job {j} must be a non-empty sequence of levels (dicts dof name -> target)")
@@ -1842,20 +1847,42 @@ class QuasiStaticSolver:
                 if not isinstance(level, Mapping):
                     raise TypeError(f"level {k} of job {j} must be a dict dof name -> target")
                 for name, value in level.items():
+                    if name == "body_poses":
+                        where = f"level {k} of job {j}"
+                        if not isinstance(value, Mapping):
+                            raise TypeError(f"body_poses of {where} must be a dict body name -> 4x4 pose")
+                        for body, pose in value.items():
+                            self._body(body)
+                            if np.shape(pose) != (4, 4):
+                                raise ValueError(
+                                    f"pose of body {body!r} in {where} must be 4x4, got {np.shape(pose)}"
+                                )
+                            check_rigid_transform(pose, f"pose of body {body!r} in {where}")
+                        moving = moving or bool(value)
+                        continue
                     self._dof(name)
                     if not (np.ndim(value) == 0 and np.isfinite(value)):
                         raise ValueError(f"target {name!r} of level {k} of job {j} must be a finite scalar")
 
         def tables(job_ids, problems):
+            """Each job's (L, D) dof targets and (L, K, 4, 4) body poses (None: no level moves a body)."""
             out = []
             for j, b in zip(job_ids, problems):
                 targets, rows = self._dof_target[b].copy(), []
+                poses, pose_rows = self._poses[b].copy(), []
                 for level in jobs[j]:
                     targets = targets.copy()
                     for name, value in level.items():
-                        targets[self._dof(name)] = float(value)
+                        if name != "body_poses":
+                            targets[self._dof(name)] = float(value)
+                    if level.get("body_poses"):
+                        poses = poses.copy()
+                        for body, pose in level["body_poses"].items():
+                            poses[self._body(body)] = pose
                     rows.append(targets)
-                out.append(np.stack(rows))
+                    pose_rows.append(poses)
+                moved = any(level.get("body_poses") for level in jobs[j])
+                out.append((np.stack(rows), np.stack(pose_rows) if moved else None))
             return out
 
         bar = None
@@ -1871,27 +1898,38 @@ class QuasiStaticSolver:
                 bar.update(int((steps == last).sum()))
 
         try:
-            self._stream(len(jobs), tables, start, reached, check)
+            self._stream(len(jobs), tables, start, reached, check, moving)
         finally:
             if bar is not None:
                 bar.close()
 
-    def _stream(self, num_jobs: int, tables, start, reached, check) -> None:
+    def _stream(self, num_jobs: int, tables, start, reached, check, moving: bool = False) -> None:
         """The engine of :meth:`solve_sequence` and :meth:`solve_stream`: jobs 0..num_jobs-1 flow through
-        the batch's problems. ``tables(job_ids, problems)`` gives each job's (L_j, D) dof targets once its
-        problem has been started (``start(problems, job_ids)``, or the problem as it is if ``start`` is
-        None); ``reached(job_ids, levels, part)`` and ``check`` as solve_stream's ``on_levels`` and
-        ``check``."""
+        the batch's problems. ``tables(job_ids, problems)`` gives each job's (L_j, D) dof targets and its
+        (L_j, K, 4, 4) body poses (None: the job moves no body) once its problem has been started
+        (``start(problems, job_ids)``, or the problem as it is if ``start`` is None); ``reached(job_ids,
+        levels, part)`` and ``check`` as solve_stream's ``on_levels`` and ``check``; ``moving``: some job
+        moves a body (the load paths then interpolate the poses, as ``solve(body_poses=...)``)."""
         B = self.batch_size
         if start is None and num_jobs > B:
             raise ValueError(f"{num_jobs} jobs need a start function to share {B} problems")
         now = self._loads_now()
-        end = {k: (v if k == "poses" else v.copy()) for k, v in now.items()}
+        end = {k: (v.copy() if k != "poses" or moving else v) for k, v in now.items()}
         path = _LoadPath.between(now, end)
         job_of = np.full(B, -1)  # the job each problem is working on (-1: none)
         level = np.zeros(B, dtype=int)
         table: dict[int, np.ndarray] = {}
+        pose_table: dict[int, np.ndarray] = {}  # the jobs that move bodies: their poses per level
         queue = [0]  # the next job to start
+
+        def settle_poses(rows: np.ndarray) -> None:
+            """Bodies of ``rows`` at the poses of their last converged load fraction (as solve() leaves a
+            problem that failed); a converged level's end pose is set as its last increment set it."""
+            if moving and rows.size:
+                self._poses[rows] = interpolate_poses(
+                    path.start["poses"][rows], path.end["poses"][rows], path.lam_done[rows]
+                )
+                self._update_bodies()
 
         def report_flagged(part: Equilibrium, problems: np.ndarray, first: np.ndarray) -> None:
             """Jobs of flagged ``problems`` report the levels from ``first`` on at their last state."""
@@ -1910,6 +1948,7 @@ class QuasiStaticSolver:
         def finish(problems: np.ndarray) -> None:
             for b in problems:
                 table.pop(int(job_of[b]), None)
+                pose_table.pop(int(job_of[b]), None)
             job_of[problems] = -1
 
         def assign(free: np.ndarray) -> np.ndarray:
@@ -1922,8 +1961,10 @@ class QuasiStaticSolver:
                 queue[0] += n
                 if start is not None:
                     start(problems, ids)
-                for j, t in zip(ids, tables(ids, problems)):
+                for j, (t, poses) in zip(ids, tables(ids, problems)):
                     table[int(j)] = t
+                    if poses is not None:
+                        pose_table[int(j)] = poses
                 job_of[problems] = ids
                 level[problems] = 0
                 now = self._loads_now()
@@ -1931,6 +1972,9 @@ class QuasiStaticSolver:
                     path.start[key][problems] = now[key][problems]
                     path.end[key][problems] = now[key][problems]
                 path.end["dof"][problems] = np.stack([table[int(j)][0] for j in ids])
+                for b, j in zip(problems.tolist(), ids.tolist()):
+                    if j in pose_table:
+                        path.end["poses"][b] = pose_table[j][0]
                 self._dof_target[problems] = path.end["dof"][problems]
                 path.change[problems] = _load_change(
                     {k: v[problems] for k, v in path.start.items()},
@@ -1949,6 +1993,7 @@ class QuasiStaticSolver:
         def level_done(left: np.ndarray) -> np.ndarray:
             """Report the problems that left their level; the converged ones move on (or take new jobs)."""
             rows = np.nonzero(left)[0]
+            settle_poses(rows)
             part = self._results(path.lam_done, path.newton_total, path.linear_total, path.residual, rows)
             ids, steps = job_of[rows], level[rows]
             if check is not None:
@@ -1975,6 +2020,12 @@ class QuasiStaticSolver:
                 path.end["dof"][move] = np.stack(
                     [table[int(job_of[b])][level[b]] for b in np.nonzero(move)[0]]
                 )
+                if moving:  # the next level starts at the poses this one reached
+                    path.start["poses"][move] = self._poses[move]
+                    for b in np.nonzero(move)[0]:
+                        poses = pose_table.get(int(job_of[b]))
+                        if poses is not None:
+                            path.end["poses"][b] = poses[level[b]]
                 self._dof_target[move] = path.end["dof"][move]
                 path.change[move] = _load_change(
                     {k: v[move] for k, v in path.start.items()}, {k: v[move] for k, v in path.end.items()}

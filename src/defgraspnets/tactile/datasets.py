@@ -389,10 +389,11 @@ def generate_tactile_shard(
     indenter (built once per radius; one copy is kept at a time). Every batch is written as one atomic
     part, so an interrupted run resumes where it stopped.
 
-    ``stream``: the indentation paths (poking; not the forearm's press-and-move paths) flow through the
-    batch instead (:meth:`MembraneSimulator.indent_stream`: a problem takes the next path as soon as it has
-    finished one; every path starts from the exact inflated state with its own load-step count), and
-    every ``sim.batch_size`` finished paths are written as one part.
+    ``stream``: the paths flow through the batch instead (:meth:`MembraneSimulator.indent_stream` for
+    poking, :meth:`MembraneSimulator.press_and_move_stream` for the forearm's press-and-move paths: a
+    problem takes the next path as soon as it has finished one; every path starts from the exact inflated
+    state with its own load-step count), and every ``sim.batch_size`` finished paths are written as one
+    part.
 
     Returns:
         counts: ``samples`` written, ``failed`` readings, ``skipped`` paths (already done), ``paths``.
@@ -401,8 +402,8 @@ def generate_tactile_shard(
     todo = [p for p in paths if not set(p.ids.tolist()) <= done]
     kind = "sphere" if isinstance(sim.indenter, SphereIndenter) else "capsule"
     by_kind: dict[tuple, list[TactilePath]] = defaultdict(list)
-    for p in todo:
-        by_kind[p.kind].append(p)
+    for p in todo:  # a stream takes paths of any length: one group per method and indenter radius
+        by_kind[(p.motions is None, p.radius_scale) if stream else p.kind].append(p)
     counts = {"samples": 0, "failed": 0, "skipped": len(paths) - len(todo), "paths": len(todo)}
     sims = {1.0: sim} if _simulators is None else _simulators
 
@@ -421,7 +422,7 @@ def generate_tactile_shard(
             total=sum(len(p.ids) for p in todo), desc=f"tactile {writer.attrs['experiment']}", unit="state"
         )
     for group in by_kind.values():
-        if stream and group[0].motions is None:
+        if stream:
             _stream_paths(simulator(group[0].radius_scale), group, writer, kind, max_step, counts, bar)
             continue
         for batch in (group[i : i + sim.batch_size] for i in range(0, len(group), sim.batch_size)):
@@ -464,7 +465,8 @@ def _failed_path(path: TactilePath) -> list[tuple]:
 
 
 def _stream_paths(sim, group, writer, kind, max_step, counts, bar) -> None:
-    """Indentation paths of one kind through :meth:`MembraneSimulator.indent_stream`; every
+    """Paths of one kind through :meth:`MembraneSimulator.indent_stream` (poking) or
+    :meth:`MembraneSimulator.press_and_move_stream` (the forearm's press-and-move paths); every
     ``sim.batch_size`` finished paths are written as one part (those that do not suit the workspace are
     recorded as failures, as they are found)."""
     pending: list[tuple] = []
@@ -486,15 +488,17 @@ def _stream_paths(sim, group, writer, kind, max_step, counts, bar) -> None:
             bar.update(len(p.ids))
 
     base = _base_friction(sim)
-    sim.indent_stream(
-        [p.indentation for p in group],
-        [p.levels for p in group],
-        on_readings,
-        render=True,
-        max_step=max_step,
-        friction=[base + p.friction_offset for p in group],
-        on_invalid=on_invalid,
-    )
+    indentations = [p.indentation for p in group]
+    options = {
+        "render": True,
+        "max_step": max_step,
+        "friction": [base + p.friction_offset for p in group],
+        "on_invalid": on_invalid,
+    }
+    if group[0].motions is None:
+        sim.indent_stream(indentations, [p.levels for p in group], on_readings, **options)
+    else:
+        sim.press_and_move_stream(indentations, [p.motions for p in group], on_readings, **options)
     if pending:
         _write_outcome(writer, kind, pending, _FAILED_READING, counts)
 
@@ -629,7 +633,7 @@ def generate_tactile_dataset(
         max_step: largest indenter motion per load step [m].
         barrier: the poke paths of a batch wait for each other at every load step (default: each goes on
             as soon as it reached the step; the same readings, :meth:`MembraneSimulator.indent_series`).
-        stream: the poke paths flow through the batch (:func:`generate_tactile_shard`), a problem taking the
+        stream: the paths flow through the batch (:func:`generate_tactile_shard`), a problem taking the
             next path as soon as it has finished one, instead of batches that end with their slowest path.
         repeats: passes over the forearm grid (thesis: 5, the original and 4 repeats); repeats 1, 2, ...
             re-place the forearm by ``perturbation`` (:class:`ForearmPerturbation` or its config

@@ -492,16 +492,19 @@ class MembraneSimulator:
     def _move(self, current: np.ndarray, target: np.ndarray, depth: np.ndarray, max_step: float):
         """Move the pressed indenters from body frames ``current`` to ``target`` (B, 4, 4) with friction, in
         steps that move no point within the outer radius more than ``max_step``; flags lost contact."""
+        for poses in self._move_poses(current, target, max_step):
+            eq = self.solver.solve(body_poses={"indenter": poses})
+            self._flag_lost_contact(eq, depth > 0)
+        return eq
+
+    def _move_poses(self, current: np.ndarray, target: np.ndarray, max_step: float) -> list[np.ndarray]:
+        """The body frames (B, 4, 4) of the load steps from ``current`` to ``target``: even steps along the
+        geodesic that move no point within the outer radius more than ``max_step`` (one count for all)."""
         motion = fem.solver.pose_change(current, target)
         reach = self.sensor.dimensions.outer_radius
         span = np.linalg.norm(motion[:, :3], axis=1) + reach * np.linalg.norm(motion[:, 3:], axis=1)
         steps = max(1, int(np.ceil(span.max() / max_step - 1e-9)))
-        for k in range(1, steps + 1):
-            eq = self.solver.solve(
-                body_poses={"indenter": fem.solver.interpolate_poses(current, target, k / steps)}
-            )
-            self._flag_lost_contact(eq, depth > 0)
-        return eq
+        return [fem.solver.interpolate_poses(current, target, k / steps) for k in range(1, steps + 1)]
 
     @staticmethod
     def _lost_contact(eq, pressing: np.ndarray) -> np.ndarray:
@@ -652,6 +655,87 @@ class MembraneSimulator:
                 raise ValueError(f"levels must increase within (0, 1], got {f.tolist()}")
         if not max_step > 0:
             raise ValueError(f"max_step must be > 0 m, got {max_step!r}")
+
+        def plan(i, frame, rotation):  # the load steps of each reading level, as _push (one path's count)
+            steps, reads, pushed = [], {}, np.zeros(1)
+            for k, level in enumerate(fractions[i]):
+                target = np.array([level * items[i].depth])
+                steps += self._path_steps(self._push_steps(target, pushed, max_step))
+                reads[len(steps) - 1] = (k, target[0], frame, rotation)
+                pushed = target
+            return steps, reads
+
+        self._stream_paths(items, plan, on_readings, render, friction, progress, on_invalid)
+
+    def press_and_move_stream(
+        self,
+        indentations,
+        motions,
+        on_readings,
+        render: bool = True,
+        max_step: float = 0.002,
+        friction=None,
+        progress: bool = False,
+        on_invalid=None,
+    ) -> None:
+        """:meth:`press_and_move` for any number of paths, B at a time, each problem taking the next path as
+        soon as it has finished one (as :meth:`indent_stream`): each path is pressed to its depth and then
+        moved rigidly with friction (shear, twist), read after each motion, as a batch of one path in
+        :meth:`press_and_move` reads it (same readings; in a batch of several paths :meth:`press_and_move`
+        gives every path the step count of the longest push and move). Afterwards every problem is back at
+        the inflated state.
+
+        Args:
+            indentations: the presses (:class:`Indentation`), any number.
+            motions: one (L_i, 4, 4) sequence of rigid motions per path in the sensor frame, as
+                :meth:`press_and_move`'s (level l is the motion from the pressed pose, not cumulative).
+            on_readings, render, max_step, friction, progress, on_invalid: as :meth:`indent_stream` (one
+                reading per motion level).
+
+        Raises:
+            WorkspaceError, IndenterError: as :meth:`indent_stream`; ValueError: bad motions.
+        """
+        items = list(indentations)
+        if len(motions) != len(items):
+            raise ValueError(f"give one sequence of motions per path: {len(items)} paths, {len(motions)}")
+        moves = []
+        for i, m in enumerate(motions):
+            m = np.asarray(m, dtype=np.float64)
+            if m.ndim != 3 or m.shape[1:] != (4, 4) or len(m) == 0:
+                raise ValueError(f"motions of path {i} must have shape (L, 4, 4), got {m.shape}")
+            for level in m:
+                fem.bodies.check_rigid_transform(level, f"motion of path {i}")
+            moves.append(m)
+        if not max_step > 0:
+            raise ValueError(f"max_step must be > 0 m, got {max_step!r}")
+
+        def plan(i, frame, rotation):
+            depth = np.array([items[i].depth])
+            steps = self._path_steps(self._push_steps(depth, np.zeros(1), max_step))
+            reads, current = {}, frame[None]
+            for k, level in enumerate(moves[i]):
+                target = (level @ frame)[None]
+                steps += [
+                    {"body_poses": {"indenter": pose[0]}}
+                    for pose in self._move_poses(current, target, max_step)
+                ]
+                reads[len(steps) - 1] = (k, depth[0], target[0], level[:3, :3] @ rotation)
+                current = target
+            return steps, reads
+
+        self._stream_paths(items, plan, on_readings, render, friction, progress, on_invalid)
+
+    @staticmethod
+    def _path_steps(steps: list[dict]) -> list[dict]:
+        """One path's load steps (of a batch of one, :meth:`_push_steps`) as scalar stream levels."""
+        return [{"indenter": float(t["indenter"][0])} for t in steps]
+
+    def _stream_paths(self, items, plan, on_readings, render, friction, progress, on_invalid) -> None:
+        """Paths through :meth:`fem.QuasiStaticSolver.solve_stream` (:meth:`indent_stream`,
+        :meth:`press_and_move_stream`): ``plan(i, frame, rotation)`` gives path i's load steps (stream
+        levels) and its readings {step: (reading index, travel [m], body frame (4, 4), indenter rotation
+        (3, 3))} from its body frame at contact onset and the indenter's rotation."""
+        n = len(items)
         base = float(next(b.friction for b in self.solver.bodies if b.name == "indenter"))
         mu = np.full(n, base) if friction is None else np.asarray(friction, dtype=np.float64).ravel()
         if mu.shape != (n,) or not np.all(np.isfinite(mu)) or np.any(mu < 0):
@@ -669,18 +753,11 @@ class MembraneSimulator:
                 valid.append(i)
         depth = np.array([item.depth for item in items])
         path_of = np.array(valid, dtype=np.int64)  # job j of the stream is path path_of[j]
-        jobs, reading_steps = [], []
-        for i in valid:  # the load steps of each reading level, as _push (one path's step count)
-            steps, at, pushed = [], {}, np.zeros(1)
-            for k, level in enumerate(fractions[i]):
-                target = np.array([level * depth[i]])
-                steps += [
-                    {"indenter": float(t["indenter"][0])} for t in self._push_steps(target, pushed, max_step)
-                ]
-                at[len(steps) - 1] = k
-                pushed = target
+        jobs, reads = [], []
+        for i in valid:
+            steps, at = plan(i, frames[i], rotations[i])
             jobs.append(steps)
-            reading_steps.append(at)
+            reads.append(at)
         template = self._template()
         solver = self.solver
         coefficients = np.full(self.batch_size, base)  # each problem's friction, that of its path
@@ -700,18 +777,18 @@ class MembraneSimulator:
         def on_levels(jobs_reached, steps, part):
             now = time.perf_counter()
             for r, (j, step) in enumerate(zip(jobs_reached.tolist(), steps.tolist())):
-                k, i = reading_steps[j].get(step), int(path_of[j])
-                if k is None:
+                at, i = reads[j].get(step), int(path_of[j])
+                if at is None:
                     continue
-                row = np.array([r])
+                k, travel, frame, rotation = at
                 (reading,) = self._readings(
-                    part.take(row), fractions[i][k] * depth[i : i + 1], frames[i : i + 1],
-                    rotations[i : i + 1], now - begun[i], 1, render,
+                    part.take(np.array([r])), np.array([travel]), frame[None], rotation[None],
+                    now - begun[i], 1, render,
                 )  # fmt: skip
                 got = readings.setdefault(i, {})
                 got[k] = reading
-                if len(got) == len(fractions[i]):
-                    on_readings(i, [got[j] for j in range(len(fractions[i]))])
+                if len(got) == len(reads[j]):
+                    on_readings(i, [got[m] for m in range(len(reads[j]))])
                     del readings[i]
 
         def lost_contact(jobs_reached, _steps, part):
@@ -725,7 +802,7 @@ class MembraneSimulator:
             solver.copy_state_from(template, rows=np.zeros(B, dtype=np.int64))
             solver.set_friction("indenter", base)
         if readings:  # cannot happen: solve_stream reports every level of every job
-            raise RuntimeError(f"indent_stream left paths {sorted(readings)} incomplete")
+            raise RuntimeError(f"the stream left paths {sorted(readings)} incomplete")
 
     def press_and_move(
         self,
