@@ -554,3 +554,53 @@ def test_a_finger_that_slips_between_vertices_is_not_an_equilibrium():
     deformation = rigid_removed_deformation(mesh.points, mesh.points + last.displacement)
     assert np.all(deformation.max(axis=1) > 1e-4)  # 0.47-0.93 mm at 15 N (the pinched state: 0)
     assert np.abs(last.displacement).max() < 2e-3  # no 10 mm jump
+
+
+def _ball_press(radius, batch_size=1):
+    """A frictional sphere pressed 2 mm (displacement-controlled) into a block clamped at its base."""
+    mesh = fem.TetMesh.box(size=(L, L, L / 2), divisions=(5, 5, 3), origin=(-L / 2, -L / 2, -L / 2))
+    bottom = np.nonzero(mesh.points[:, 2] < -L / 2 + 1e-12)[0]
+    ball = fem.RigidBody(
+        "ball",
+        fem.Sphere(radius=radius, center=(0, 0, radius)),
+        control=fem.Control.displacement((0, 0, -1)),
+        friction=0.3,
+    )
+    plane = fem.RigidBody("floor", fem.Plane(point=(0, 0, -L)), friction=0.0)
+    return fem.QuasiStaticSolver(
+        mesh,
+        [ball, plane],
+        fem.Material(1e5, 0.3, 1000.0),
+        fixed=bottom,
+        batch_size=batch_size,
+        device="cpu",
+        options=fem.SolverOptions(linear_solver="dense"),
+    )
+
+
+def test_each_problem_may_have_its_own_sphere_radius():
+    """set_body_radius: a problem whose ball is 1.5x wider solves as a solver built with that ball (bit
+    for bit); the wider ball pushes harder at the same depth; copy_state_from carries the radius; bad
+    bodies and values are named."""
+    small, wide = L / 5, 1.5 * L / 5
+    solver = _ball_press(small, batch_size=2)
+    solver.set_body_radius("ball", [small, wide])
+    lifted = np.tile(np.eye(4), (2, 1, 1))
+    lifted[1, 2, 3] = wide - small  # the wider ball's lowest point at the block's top face too
+    solver.set_body_pose("ball", lifted)
+    eq = solver.solve(targets={"ball": 0.002})
+    alone = _ball_press(wide).solve(targets={"ball": 0.002})
+    assert eq.converged.all() and alone.converged.all()
+    np.testing.assert_array_equal(eq.displacement[1], alone.displacement[0])
+    np.testing.assert_array_equal(eq.body_force["ball"][1], alone.body_force["ball"][0])
+    assert eq.body_force["ball"][1, 2] > 1.5 * eq.body_force["ball"][0, 2] > 0  # Hertz: F ~ sqrt(R) d^1.5
+    copy = _ball_press(small, batch_size=1)
+    copy.copy_state_from(solver, rows=[1])
+    np.testing.assert_array_equal(copy.solve(targets={"ball": 0.0025}).displacement[0],
+                                  solver.solve(targets={"ball": 0.0025}).displacement[1])  # fmt: skip
+    with pytest.raises(ValueError, match="only sphere and capsule radii can be set, body 'floor' is a Plane"):
+        solver.set_body_radius("floor", 0.01)
+    with pytest.raises(ValueError, match="radius of body 'ball' must be 2 finite values > 0 m"):
+        solver.set_body_radius("ball", [0.01, -0.01])
+    with pytest.raises(ValueError, match="radius of body 'ball' must be 1 finite values > 0 m"):
+        solver.set_body_radius("ball", [0.01, 0.02], rows=[0])

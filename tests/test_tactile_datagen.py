@@ -366,7 +366,8 @@ def test_config_perturbation_block_is_valid():
 
 def test_perturbed_forearm_repeat_round_trip(small_sensor, tmp_path):
     """One tiny solve (coarsest membrane): the first reading (3 mm shear along +x) of a perturbed 5 mm
-    press. Off the symmetric nominal placement the cap-8 membrane solves ~3x slower (~25 s here)."""
+    press, batched (a simulator of the scaled forearm) and streamed (the batch's problem takes the scaled
+    radius). Off the symmetric nominal placement the cap-8 membrane solves ~3x slower (~25 s here)."""
     sensor = small_sensor
     grid = forearm_grid()
     n = len(grid)
@@ -386,14 +387,20 @@ def test_perturbed_forearm_repeat_round_trip(small_sensor, tmp_path):
         radius_scale=full.radius_scale,
         friction_offset=full.friction_offset,
     )
-    sim = make_simulator(sensor, FOREARM, 1500.0, closed=True, friction=friction, intrinsics=CAMERA)
-    out = tmp_path / "forearm_repeat.h5"
-    writer = TactileShardWriter(out, sensor_references(sim), "forearm")
-    counts = generate_tactile_shard(sim, [path], writer, progress=False)
-    assert counts == {"samples": 1, "failed": 0, "skipped": 0, "paths": 1}
-    assert np.all(sim.solver._friction == friction)  # the shared simulator's friction is restored
-    writer.finalize()
-    s = read_tactile_shard(out).samples
+    shards = {}
+    for stream in (False, True):  # its own simulator with the scaled forearm / one problem's radius set
+        sim = make_simulator(sensor, FOREARM, 1500.0, closed=True, friction=friction, intrinsics=CAMERA)
+        out = tmp_path / f"forearm_repeat_{stream}.h5"
+        writer = TactileShardWriter(out, sensor_references(sim), "forearm")
+        counts = generate_tactile_shard(sim, [path], writer, progress=False, stream=stream)
+        assert counts == {"samples": 1, "failed": 0, "skipped": 0, "paths": 1}
+        assert np.all(sim.solver._friction == friction)  # the shared simulator's friction is restored
+        assert np.all(sim.solver._radius == FOREARM.radius)  # and its radius
+        writer.finalize()
+        shards[stream] = read_tactile_shard(out).samples
+    s = shards[False]
+    for name in ("wrench", "depth", "indenter_pose", "params"):  # streamed: the same reading, bit for bit
+        np.testing.assert_array_equal(getattr(shards[True], name), getattr(s, name), err_msg=name)
     np.testing.assert_array_equal(s.sample_id, full.ids[:1])
     assert s.sample_id[0] >= n
     np.testing.assert_array_equal(s.params, full.params[:1])  # the perturbation is stored per reading

@@ -246,6 +246,43 @@ def test_a_stream_of_press_and_move_paths_reads_as_each_path_alone(sensor):
         sim.press_and_move_stream([press], [np.eye(4)], lambda i, r: None)
 
 
+def test_a_stream_of_paths_with_their_own_indenter_radii_reads_as_simulators_of_those_radii(sensor):
+    """radius_scale: poke paths with spheres 2x and 0.8x as wide as the simulator's share one stream and
+    read as simulators built with those spheres (bit for bit); the wider sphere pushes harder."""
+    from dataclasses import replace
+
+    def simulator(indenter, batch_size):
+        return MembraneSimulator(
+            sensor,
+            indenter,
+            _gas(sensor),
+            batch_size=batch_size,
+            friction=0.5,
+            intrinsics=PICO_FLEXX.scaled(0.25),
+        )
+
+    sim = simulator(SPHERE, 2)
+    pole = sim.pole_indentation(0.01)
+    scales = [2.0, 1.0, 0.8]
+    got = {}
+    sim.indent_stream([pole] * 3, [1.0], lambda i, r: got.__setitem__(i, r[0]), radius_scale=scales)
+    for i, scale in enumerate(scales):
+        scaled = replace(SPHERE, radius=SPHERE.radius * scale)
+        expected = simulator(scaled, 1).indent_series([pole], [1.0])[0][0]
+        assert got[i].converged
+        np.testing.assert_array_equal(got[i].positions, expected.positions)
+        np.testing.assert_array_equal(got[i].base_wrench, expected.base_wrench)
+        np.testing.assert_array_equal(got[i].depth.depth, expected.depth.depth)
+    # the 40 mm sphere presses more of the coarse membrane at the same depth (1.93 against 1.80 N)
+    assert -got[0].base_wrench[2] > 1.05 * -got[1].base_wrench[2] > 0
+    # the next stream at the simulator's own radius reads as before (the problems are back at it)
+    again = {}
+    sim.indent_stream([pole], [1.0], lambda i, r: again.__setitem__(i, r[0]))
+    np.testing.assert_array_equal(again[0].base_wrench, got[1].base_wrench)
+    with pytest.raises(ValueError, match="radius_scale must hold 3 finite factors > 0"):
+        sim.indent_stream([pole] * 3, [1.0], lambda i, r: None, radius_scale=[1.0, 0.0, 1.0])
+
+
 def test_closed_capsule_is_stiffer_than_open(sensor, open_sim):
     closed = MembraneSimulator(sensor, SPHERE, _gas(sensor), closed=True, batch_size=1, intrinsics=None)
     # sealed at the same PV: it inflates less than the regulated one (its pressure drops as it grows)

@@ -218,7 +218,7 @@ class BodyArrays:
     """Rigid-body data for the kernels; per (problem b, body k) arrays are indexed b * num_bodies + k."""
 
     kind: wp.array(dtype=wp.int32)  # (K,)
-    radius: wp.array(dtype=wp.float64)  # (K,)
+    radius: wp.array(dtype=wp.float64)  # (B*K,) sphere / capsule / rounded-box radius, per problem
     half_length: wp.array(dtype=wp.float64)  # (K,)
     half_extents: wp.array(dtype=wp.vec3d)  # (K,) rounded box: half extents of the inner (unrounded) box
     mesh: wp.array(dtype=wp.uint64)  # (K,) Warp mesh id (0 if not a mesh)
@@ -254,7 +254,7 @@ def body_gap(bodies: BodyArrays, b: int, k: int, x: wp.vec3d, travel: f64):
     g, n_local = shape_signed_distance(
         bodies.kind[k],
         p,
-        bodies.radius[k],
+        bodies.radius[bk],
         bodies.half_length[k],
         bodies.half_extents[k],
         bodies.mesh[k],
@@ -274,7 +274,7 @@ def body_gap_hessian(bodies: BodyArrays, b: int, k: int, x: wp.vec3d, travel: f6
     p = wp.transpose(R) * (x - origin)
     n_local = wp.transpose(R) * n
     H = shape_distance_hessian(
-        bodies.kind[k], p, n_local, bodies.radius[k], bodies.half_length[k], bodies.half_extents[k]
+        bodies.kind[k], p, n_local, bodies.radius[bk], bodies.half_length[k], bodies.half_extents[k]
     )
     return R * H * wp.transpose(R)
 

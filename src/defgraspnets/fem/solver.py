@@ -41,7 +41,7 @@ from . import contact as ck
 from . import elasticity as ek
 from . import kernels as kk
 from . import pressure as pk
-from .bodies import SHAPE_KIND, BodyError, RigidBody, TriangleMesh, check_rigid_transform
+from .bodies import SHAPE_KIND, BodyError, Capsule, RigidBody, Sphere, TriangleMesh, check_rigid_transform
 from .loads import BodyLoad
 from .material import MATERIAL_MODELS, Material
 from .mesh import TetMesh
@@ -691,9 +691,9 @@ class QuasiStaticSolver:
         ba.kind = wp.array(
             [SHAPE_KIND[type(b.shape)] for b in self.bodies] or [0], dtype=wp.int32, device=dev
         )
-        ba.radius = wp.array(
-            [getattr(b.shape, "radius", 0.0) for b in self.bodies] or [0.0], dtype=wp.float64, device=dev
-        )
+        #: (B, K) radius of each problem's spheres, capsules and rounded boxes [m] (set_body_radius)
+        self._radius = np.tile([getattr(b.shape, "radius", 0.0) for b in self.bodies], (B, 1))
+        ba.radius = wp.array(self._radius.reshape(-1) if K else [0.0], dtype=wp.float64, device=dev)
         ba.half_length = wp.array(
             [getattr(b.shape, "half_length", 0.0) for b in self.bodies] or [0.0], dtype=wp.float64, device=dev
         )
@@ -902,6 +902,38 @@ class QuasiStaticSolver:
         self._put_rows(self._stick_stretch, self.num_surface * self.num_bodies, rows)  # zeroed
         self.system.forget_factors(mask)
 
+    def set_body_radius(self, name: str, radius, rows=None) -> None:
+        """Radius [m] of sphere or capsule body ``name``, per problem: a scalar, or one per problem (one per
+        row with ``rows``). Like :meth:`set_body_pose`, the body changes at once: the changed problems lose
+        that body's friction history and their factorizations; the others are untouched. (A body's radius
+        as built is its shape's; each problem may have its own, e.g. a data set's indenters of several
+        sizes streamed through one batch.)"""
+        k = self._body(name)
+        shape = self.bodies[k].shape
+        if not isinstance(shape, (Sphere, Capsule)):
+            raise ValueError(
+                f"only sphere and capsule radii can be set, body {name!r} is a {type(shape).__name__}"
+            )
+        rows = np.arange(self.batch_size) if rows is None else _problem_rows(rows, "rows", self.batch_size)
+        r = np.asarray(radius, dtype=np.float64)
+        r = np.broadcast_to(r, (len(rows),)) if r.ndim == 0 else r.ravel()
+        if r.shape != (len(rows),) or not np.all(np.isfinite(r)) or np.any(r <= 0):
+            raise ValueError(
+                f"radius of body {name!r} must be {len(rows)} finite values > 0 m, got {radius!r}"
+            )
+        changed = rows[self._radius[rows, k] != r]
+        if not changed.size:
+            return
+        self._radius[rows, k] = r
+        self._bodies.radius.assign(wp.array(self._radius.reshape(-1), dtype=wp.float64, device=self.device))
+        mask = np.zeros(self.batch_size, dtype=bool)
+        mask[changed] = True
+        stretch = self._host_rows(self._stick_stretch, self.num_surface * self.num_bodies, changed)
+        stretch = stretch.reshape(len(changed), self.num_surface, self.num_bodies, 3)
+        stretch[:, :, k] = 0.0
+        self._put_rows(self._stick_stretch, self.num_surface * self.num_bodies, changed, stretch)
+        self.system.forget_factors(mask)
+
     def _put_rows(self, array: wp.array, per: int, rows: np.ndarray, values=0.0) -> None:
         """Write ``values`` ((len(rows), per, ...), or a scalar: zero by default) into the ``per`` entries of
         each problem of ``rows`` of a problem-major device array."""
@@ -1011,14 +1043,14 @@ class QuasiStaticSolver:
         solver); ``rows`` is an integer array into ``other``'s problems (repeats allowed: one solved problem
         copied to several replicas) and ``into`` the distinct problems of this solver that take them
         (default: all, ``rows`` then names one source per problem). Copied: displacements and travels
-        (current, converged reference, trial and predictor), friction lags, stick stretches and their
-        Aitken relaxation, body poses and frictions with their friction reference placements, materials,
-        body loads, dof targets, prescribed displacements, nodal and dof forces, gas laws and pressures,
-        statuses, Levenberg-Marquardt and chord-Newton bookkeeping, and the stored factorizations (shared:
-        they are never modified after being made, only dropped or replaced). The other problems of this
-        solver keep their states (and factorizations, unless a copied material differs from the one it
-        replaces: then every problem refactors). The solver is batch-independent, so the next solve of a
-        copied problem is bit-identical to the one its source problem would make.
+        (current, converged reference, trial and predictor), friction lags, stick stretches and their Aitken
+        relaxation, body poses, radii and frictions with their friction reference placements, materials, body
+        loads, dof targets, prescribed displacements, nodal and dof forces, gas laws and pressures, statuses,
+        Levenberg-Marquardt and chord-Newton bookkeeping, and the stored factorizations (shared: they are
+        never modified after being made, only dropped or replaced). The other problems of this solver keep
+        their states (and factorizations, unless a copied material differs from the one it replaces: then
+        every problem refactors). The solver is batch-independent, so the next solve of a copied problem is
+        bit-identical to the one its source problem would make.
         """
         if not isinstance(other, QuasiStaticSolver):
             raise TypeError(f"other must be a QuasiStaticSolver, got {type(other).__name__}")
@@ -1108,7 +1140,15 @@ class QuasiStaticSolver:
         )
         for name in per_problem:
             gather(getattr(self, name), getattr(other, name), 1)
-        for name in ("rotation", "translation", "axis", "friction", "ref_rotation", "ref_translation"):
+        for name in (
+            "rotation",
+            "translation",
+            "axis",
+            "friction",
+            "ref_rotation",
+            "ref_translation",
+            "radius",
+        ):
             gather(getattr(self._bodies, name), getattr(other._bodies, name), K)
         sysm, src = self.system, other.system
         for name in ("gradient", "rhs", "increment"):
@@ -1119,6 +1159,7 @@ class QuasiStaticSolver:
         # host state
         self._poses[into] = other._poses[rows]
         self._friction[into] = other._friction[rows]
+        self._radius[into] = other._radius[rows]
         self._relag_omega[into] = other._relag_omega[rows]
         self._relag_has_residual[into] = other._relag_has_residual[rows]
         if self._last_change.shape[1:] != other._last_change.shape[1:]:  # (B, 0): no change committed yet
@@ -1161,9 +1202,11 @@ class QuasiStaticSolver:
         theirs = [(b.name, type(b.shape).__name__, b.dof_name, b.control.mode) for b in other.bodies]
         if mine != theirs:
             fail("bodies (name, shape, dof, control)", mine, theirs)
-        geometry = ("kind", "radius", "half_length", "half_extents", "mesh_points")
+        geometry = ("kind", "half_length", "half_extents", "mesh_points")  # radii are per problem: state
+        built = [[getattr(b.shape, "radius", 0.0) for b in s.bodies] for s in (self, other)]
         if not (
-            np.array_equal(self._shape_frames, other._shape_frames)
+            built[0] == built[1]
+            and np.array_equal(self._shape_frames, other._shape_frames)
             and np.array_equal(self._axes_local, other._axes_local)
             and all(
                 np.array_equal(getattr(self._bodies, g).numpy(), getattr(other._bodies, g).numpy())

@@ -30,8 +30,10 @@ between sessions). Each value is drawn uniformly within +- the magnitudes of a
 resume order. Repeat 0 is the nominal grid, unchanged. The device's motions (press, shear, twist about
 the sensor axis) are the commanded ones in every repeat. Repeat k of grid state i has sample id
 i + k n (n: the grid size, 1962), and every reading stores its repeat and perturbation in its params
-(``PERTURBATION_PARAM_NAMES``), so a user can see which placement produced it. A scaled radius needs its
-own FEM body, so paths of one radius are batched together (one simulator, one inflation, per radius).
+(``PERTURBATION_PARAM_NAMES``), so a user can see which placement produced it. Streamed (``stream``),
+paths of every radius share one batch, each problem with its path's indenter radius
+(:meth:`~defgraspnets.fem.QuasiStaticSolver.set_body_radius`); in batches, paths of one radius are
+batched together (one simulator, one inflation, per radius).
 
 Each reading is stored as a :class:`~defgraspnets.data.tactile_schema.TactileSamples` row: the
 camera's depth image, the base wrench (the force and torque the indenter exerts on the sensor, sensor
@@ -402,8 +404,8 @@ def generate_tactile_shard(
     todo = [p for p in paths if not set(p.ids.tolist()) <= done]
     kind = "sphere" if isinstance(sim.indenter, SphereIndenter) else "capsule"
     by_kind: dict[tuple, list[TactilePath]] = defaultdict(list)
-    for p in todo:  # a stream takes paths of any length: one group per method and indenter radius
-        by_kind[(p.motions is None, p.radius_scale) if stream else p.kind].append(p)
+    for p in todo:  # a stream takes paths of any length and indenter radius: one group per method
+        by_kind[p.motions is None if stream else p.kind].append(p)
     counts = {"samples": 0, "failed": 0, "skipped": len(paths) - len(todo), "paths": len(todo)}
     sims = {1.0: sim} if _simulators is None else _simulators
 
@@ -423,7 +425,7 @@ def generate_tactile_shard(
         )
     for group in by_kind.values():
         if stream:
-            _stream_paths(simulator(group[0].radius_scale), group, writer, kind, max_step, counts, bar)
+            _stream_paths(sim, group, writer, kind, max_step, counts, bar)
             continue
         for batch in (group[i : i + sim.batch_size] for i in range(0, len(group), sim.batch_size)):
             try:
@@ -494,6 +496,7 @@ def _stream_paths(sim, group, writer, kind, max_step, counts, bar) -> None:
         "max_step": max_step,
         "friction": [base + p.friction_offset for p in group],
         "on_invalid": on_invalid,
+        "radius_scale": [p.radius_scale for p in group],
     }
     if group[0].motions is None:
         sim.indent_stream(indentations, [p.levels for p in group], on_readings, **options)

@@ -53,7 +53,7 @@ is the indenter's contact wrench with the opposite sign, independent of the gas 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -362,8 +362,9 @@ class MembraneSimulator:
         return self._inflated_template
 
     # ------------------------------------------------------------------ indentation geometry
-    def onset_travel(self, indentation: Indentation) -> float:
-        """Travel [m] along the direction at which the indenter first touches the inflated membrane.
+    def onset_travel(self, indentation: Indentation, indenter: Indenter | None = None) -> float:
+        """Travel [m] along the direction at which the indenter (default: the simulator's; ``indenter``: one
+        of its shape with other dimensions) first touches the inflated membrane.
 
         Root of m(t) = min over outer vertices of the indenter's signed distance when moved by t d
         (negative: it already penetrates at its start pose, and backs off). Works for every supported
@@ -374,7 +375,8 @@ class MembraneSimulator:
         Raises:
             WorkspaceError: the indenter is not clear of the membrane even 4 R_o back, or never touches it.
         """
-        body = self.indenter.with_pose(indentation.pose)
+        indenter = self.indenter if indenter is None else indenter
+        body = indenter.with_pose(indentation.pose)
         x = body.pose.inverse_apply(self.inflated.positions[0][self.sensor.outer_vertices])
         d = np.asarray(indentation.direction)
         d_local = body.pose.rotation.inv().apply(d)
@@ -388,7 +390,9 @@ class MembraneSimulator:
         # indenter's thinnest width (so neither passes through the other unseen), then narrow the first
         # bracket
         dims = self.sensor.dimensions
-        step = 0.5 * min(dims.thickness, self._half_width)
+        step = 0.5 * min(
+            dims.thickness, self._half_width if indenter is self.indenter else half_width(indenter)
+        )
         span = 4.0 * dims.outer_radius
         if first_touch(np.array([-span])) == 0:
             raise WorkspaceError(f"the indenter at {indentation.pose!r} is not clear of the membrane")
@@ -456,8 +460,11 @@ class MembraneSimulator:
             frames[b], rotations[b] = self.path_frame(item)
         return items, frames, rotations
 
-    def path_frame(self, item: Indentation) -> tuple[np.ndarray, np.ndarray]:
-        """The FEM body frame (4, 4) of an indentation at contact onset and the indenter's rotation (3, 3).
+    def path_frame(
+        self, item: Indentation, indenter: Indenter | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The FEM body frame (4, 4) of an indentation at contact onset and the indenter's rotation (3, 3)
+        (``indenter``: as :meth:`onset_travel`).
 
         Raises:
             WorkspaceError: the indenter would reach below the clamped rim plane, or never meets the
@@ -465,10 +472,11 @@ class MembraneSimulator:
         """
         if not isinstance(item, Indentation):
             raise TypeError(f"indentations must be Indentation instances, got {type(item).__name__}")
-        t0 = self.onset_travel(item)
+        indenter = self.indenter if indenter is None else indenter
+        t0 = self.onset_travel(item, indenter)
         start = Pose(item.pose.position + t0 * np.asarray(item.direction), item.pose.quaternion)
         final = Pose(start.position + item.depth * np.asarray(item.direction), item.pose.quaternion)
-        check_workspace(self.indenter.with_pose(final), self.sensor.dimensions)
+        check_workspace(indenter.with_pose(final), self.sensor.dimensions)
         frame = self._body_frame(Indentation(start, item.depth, item.direction))
         return frame, item.pose.rotation.as_matrix()
 
@@ -613,6 +621,7 @@ class MembraneSimulator:
         friction=None,
         progress: bool = False,
         on_invalid=None,
+        radius_scale=None,
     ) -> None:
         """Indent any number of paths, B at a time, each problem taking the next path as soon as it has
         finished one (:meth:`fem.QuasiStaticSolver.solve_stream`): a data set's hard paths no longer hold
@@ -637,6 +646,10 @@ class MembraneSimulator:
             progress: a progress bar over the paths.
             on_invalid: ``on_invalid(i, error)`` for each path that does not suit the sensor or the
                 indenter (:meth:`path_frame` raised ``error``); those paths are skipped. None: raise.
+            radius_scale: per-path factors on the indenter's radius (sphere, capsule; default 1): paths
+                of several indenter sizes share the batch, each problem with its path's radius
+                (:meth:`fem.QuasiStaticSolver.set_body_radius`), and read as a simulator built with that
+                radius would read them.
 
         Raises:
             WorkspaceError, IndenterError: a path does not suit the sensor or the indenter (checked for every
@@ -665,7 +678,7 @@ class MembraneSimulator:
                 pushed = target
             return steps, reads
 
-        self._stream_paths(items, plan, on_readings, render, friction, progress, on_invalid)
+        self._stream_paths(items, plan, on_readings, render, friction, progress, on_invalid, radius_scale)
 
     def press_and_move_stream(
         self,
@@ -677,6 +690,7 @@ class MembraneSimulator:
         friction=None,
         progress: bool = False,
         on_invalid=None,
+        radius_scale=None,
     ) -> None:
         """:meth:`press_and_move` for any number of paths, B at a time, each problem taking the next path as
         soon as it has finished one (as :meth:`indent_stream`): each path is pressed to its depth and then
@@ -689,8 +703,8 @@ class MembraneSimulator:
             indentations: the presses (:class:`Indentation`), any number.
             motions: one (L_i, 4, 4) sequence of rigid motions per path in the sensor frame, as
                 :meth:`press_and_move`'s (level l is the motion from the pressed pose, not cumulative).
-            on_readings, render, max_step, friction, progress, on_invalid: as :meth:`indent_stream` (one
-                reading per motion level).
+            on_readings, render, max_step, friction, progress, on_invalid, radius_scale: as
+                :meth:`indent_stream` (one reading per motion level).
 
         Raises:
             WorkspaceError, IndenterError: as :meth:`indent_stream`; ValueError: bad motions.
@@ -723,14 +737,16 @@ class MembraneSimulator:
                 current = target
             return steps, reads
 
-        self._stream_paths(items, plan, on_readings, render, friction, progress, on_invalid)
+        self._stream_paths(items, plan, on_readings, render, friction, progress, on_invalid, radius_scale)
 
     @staticmethod
     def _path_steps(steps: list[dict]) -> list[dict]:
         """One path's load steps (of a batch of one, :meth:`_push_steps`) as scalar stream levels."""
         return [{"indenter": float(t["indenter"][0])} for t in steps]
 
-    def _stream_paths(self, items, plan, on_readings, render, friction, progress, on_invalid) -> None:
+    def _stream_paths(
+        self, items, plan, on_readings, render, friction, progress, on_invalid, radius_scale=None
+    ) -> None:
         """Paths through :meth:`fem.QuasiStaticSolver.solve_stream` (:meth:`indent_stream`,
         :meth:`press_and_move_stream`): ``plan(i, frame, rotation)`` gives path i's load steps (stream
         levels) and its readings {step: (reading index, travel [m], body frame (4, 4), indenter rotation
@@ -740,11 +756,22 @@ class MembraneSimulator:
         mu = np.full(n, base) if friction is None else np.asarray(friction, dtype=np.float64).ravel()
         if mu.shape != (n,) or not np.all(np.isfinite(mu)) or np.any(mu < 0):
             raise ValueError(f"friction must hold {n} finite coefficients >= 0, got {friction!r}")
+        scale = np.ones(n) if radius_scale is None else np.asarray(radius_scale, dtype=np.float64).ravel()
+        if scale.shape != (n,) or not np.all(np.isfinite(scale)) or np.any(scale <= 0):
+            raise ValueError(f"radius_scale must hold {n} finite factors > 0, got {radius_scale!r}")
+        if np.any(scale != 1) and not isinstance(self.indenter, (SphereIndenter, CapsuleIndenter)):
+            raise IndenterError(
+                f"only sphere and capsule radii can be scaled, got {type(self.indenter).__name__}"
+            )
+        base_radius = getattr(self.indenter, "radius", 0.0)
         frames, rotations = np.zeros((n, 4, 4)), np.zeros((n, 3, 3))
         valid = []  # the paths to solve (job j is path valid[j])
         for i, item in enumerate(items):
+            indenter = (
+                self.indenter if scale[i] == 1 else replace(self.indenter, radius=base_radius * scale[i])
+            )
             try:
-                frames[i], rotations[i] = self.path_frame(item)
+                frames[i], rotations[i] = self.path_frame(item, indenter)
             except IndenterError as error:
                 if on_invalid is None:
                     raise
@@ -767,6 +794,8 @@ class MembraneSimulator:
         def start(problems, jobs_started):
             ids = path_of[jobs_started]
             solver.copy_state_from(template, rows=np.zeros(len(problems), dtype=np.int64), into=problems)
+            if np.any(scale[ids] != 1):
+                solver.set_body_radius("indenter", base_radius * scale[ids], rows=problems)
             solver.set_body_pose("indenter", frames[ids], rows=problems)
             coefficients[problems] = base  # the template's
             if np.any(mu[ids] != base):
