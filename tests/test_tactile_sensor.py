@@ -126,19 +126,24 @@ def test_paths_without_a_barrier_between_load_steps_give_the_same_readings(senso
     assert readings[False][1][1].contact_force[0] < -0.05  # N: the tilted poke pushes sideways
 
 
+def _small_camera_sim(sensor, batch_size, indenter=SPHERE, friction=0.5):
+    """An open sensor with a quarter-size camera (the stream tests build one per path to compare with)."""
+    return MembraneSimulator(
+        sensor,
+        indenter,
+        _gas(sensor),
+        batch_size=batch_size,
+        friction=friction,
+        intrinsics=PICO_FLEXX.scaled(0.25),
+    )
+
+
 def test_a_stream_of_paths_through_a_smaller_batch_reads_as_each_path_alone(sensor):
     """indent_stream pushes three paths through two problems (the third starts where the first finished):
     each path's readings are those of a one-path batch, and the membrane is left at its inflated state."""
 
     def simulator(batch_size, friction=0.5):
-        return MembraneSimulator(
-            sensor,
-            SPHERE,
-            _gas(sensor),
-            batch_size=batch_size,
-            friction=friction,
-            intrinsics=PICO_FLEXX.scaled(0.25),
-        )
+        return _small_camera_sim(sensor, batch_size, friction=friction)
 
     sim = simulator(2)
     pole = sim.pole_indentation(0.006)
@@ -199,14 +204,7 @@ def test_a_stream_of_press_and_move_paths_reads_as_each_path_alone(sensor):
     forearm = CapsuleIndenter(radius=0.04, length=0.2)
 
     def simulator(batch_size):
-        return MembraneSimulator(
-            sensor,
-            forearm,
-            _gas(sensor),
-            batch_size=batch_size,
-            friction=0.5,
-            intrinsics=PICO_FLEXX.scaled(0.25),
-        )
+        return _small_camera_sim(sensor, batch_size, forearm)
 
     sim = simulator(2)
     top = Pose(sensor.dimensions.outer_pole + [0.0, 0.0, forearm.radius + 0.01])
@@ -252,14 +250,7 @@ def test_a_stream_of_paths_with_their_own_indenter_radii_reads_as_simulators_of_
     from dataclasses import replace
 
     def simulator(indenter, batch_size):
-        return MembraneSimulator(
-            sensor,
-            indenter,
-            _gas(sensor),
-            batch_size=batch_size,
-            friction=0.5,
-            intrinsics=PICO_FLEXX.scaled(0.25),
-        )
+        return _small_camera_sim(sensor, batch_size, indenter)
 
     sim = simulator(SPHERE, 2)
     pole = sim.pole_indentation(0.01)
