@@ -13,12 +13,15 @@
 #   fit together. Poking never repeats. Training splits the forearm set by grid state (all repeats of a
 #   state on one side, defgraspnets.data.tactile_datamodule).
 # generate-gpu: one process on one GPU (device=cuda) working through shards 0.. of every STRIDE-th path
-#   of the DATASET grid split into SHARD_COUNT interleaved shards, each shard's paths solved in one
-#   batch (env BATCH, default 64: shards of <= 64 paths, the shards' paths are batched at most BATCH at a
-#   time) until SECONDS are spent (a shard cut short resumes on the next call):
+#   of the DATASET grid split into SHARD_COUNT interleaved shards, each shard's paths streamed through
+#   env BATCH (default 64) problems (datagen's stream=true: a problem takes the next path as soon as it
+#   finished one; finished paths are written BATCH at a time) until SECONDS are spent (a shard cut short
+#   resumes on the next call):
 #   bash scripts/wrench_pipeline.sh generate-gpu DATASET STRIDE SHARD_COUNT [SECONDS]
-#   e.g. generate-gpu poke 4 8 (every 4th poke path: 500 paths, 2500 states, ~17 min on an H100) and
-#   generate-gpu forearm 2 3. Many processes on one GPU are slower than one batched process.
+#   e.g. BATCH=128 generate-gpu poke 1 2 (the whole 10,000-state grid: measured 8.1 min for it as one
+#   stream on an H100, session 35) and REPEATS=5 BATCH=128 generate-gpu forearm 1 2 (the five-pass
+#   forearm set, 9810 states: ~14.4 min extrapolated from half of it). Each shard drains its stream
+#   once, so fewer, larger shards are faster. Many processes on one GPU are slower than one.
 # train: the three models of §3.4 on the finished shards (trainer.max_time bounds each), then
 #   scripts/evaluate_wrench.py and scripts/benchmark_wrench_cnn.py; results into OUT_DIR.
 set -uo pipefail
