@@ -678,7 +678,7 @@ class MembraneSimulator:
                 pushed = target
             return steps, reads
 
-        self._stream_paths(items, plan, on_readings, render, friction, progress, on_invalid, radius_scale)
+        self._run_stream(items, plan, on_readings, render, friction, progress, on_invalid, radius_scale)
 
     def press_and_move_stream(
         self,
@@ -737,14 +737,14 @@ class MembraneSimulator:
                 current = target
             return steps, reads
 
-        self._stream_paths(items, plan, on_readings, render, friction, progress, on_invalid, radius_scale)
+        self._run_stream(items, plan, on_readings, render, friction, progress, on_invalid, radius_scale)
 
     @staticmethod
     def _path_steps(steps: list[dict]) -> list[dict]:
         """One path's load steps (of a batch of one, :meth:`_push_steps`) as scalar stream levels."""
         return [{"indenter": float(t["indenter"][0])} for t in steps]
 
-    def _stream_paths(
+    def _run_stream(
         self, items, plan, on_readings, render, friction, progress, on_invalid, radius_scale=None
     ) -> None:
         """Paths through :meth:`fem.QuasiStaticSolver.solve_stream` (:meth:`indent_stream`,
