@@ -427,21 +427,21 @@ class BatchedSystem:
                 # kept factors are copied out of the batch, which would otherwise stay allocated as a whole
                 L = [L[k].clone() if self.keep_factors else L[k] for k in range(len(ids))]
                 info = info.tolist()
+            # not positive definite (exact Hessian off a stable equilibrium): reported unsolved
+            # (report_indefinite), their earlier (kept) factorizations out of date; the others LU-factored
             report = self._reported(ids, info)
-            for k, p in enumerate(ids):
-                # not positive definite (exact Hessian off a stable equilibrium): LU with partial pivoting,
-                # or reported unsolved (report_indefinite)
-                if p in report:
-                    self._dense_factors.pop(p, None)  # an earlier (kept) factorization is out of date
+            if report:
+                for p in report:
+                    self._dense_factors.pop(p, None)
+                keep = [k for k, p in enumerate(ids) if p not in report]
+                ids, index, A = [ids[k] for k in keep], index[keep], A[keep]
+                L, info = [L[k] for k in keep], [info[k] for k in keep]
+                if not ids:
                     continue
+            for k, p in enumerate(ids):  # LU with partial pivoting where Cholesky broke down
                 self._dense_factors[p] = (
                     ("lu", *torch.linalg.lu_factor(A[k])) if info[k] else ("cholesky", L[k])
                 )
-            if report:
-                keep = [k for k, p in enumerate(ids) if p not in report]
-                ids, index, A = [ids[k] for k in keep], index[keep], A[keep]
-                if not ids:
-                    continue
             x = self._dense_substitute(ids, rhs)
             self._store_solution(increment, index, x)
             if residual:
@@ -536,7 +536,7 @@ class BatchedSystem:
             # (report_indefinite), or block LU with partial pivoting inside the blocks, and dense LU where
             # a pivot block is singular
             indefinite = [p for ids in batches for p in factor(ids, lu=False)]
-            report = self._reported(indefinite, [1] * len(indefinite))
+            report = self._reported(indefinite)
             if report:
                 for p in report:
                     del self._dense_factors[p]  # its broken factorization must not be used
@@ -559,12 +559,14 @@ class BatchedSystem:
             torch.cuda.synchronize(dev)
         return 1, worst
 
-    def _reported(self, ids: list[int], info) -> set[int]:
-        """The problems of ``ids`` whose Cholesky factorization broke down (``info`` nonzero, per problem)
-        and that :attr:`report_indefinite` asks to report: marked in :attr:`indefinite`, not solved."""
+    def _reported(self, ids: list[int], info=None) -> set[int]:
+        """The problems of ``ids`` whose Cholesky factorization broke down (``info`` nonzero, per problem;
+        None: all of them) and that :attr:`report_indefinite` asks to report: marked in
+        :attr:`indefinite`, not solved."""
         if self.report_indefinite is None:
             return set()
-        report = {p for p, i in zip(ids, info) if i and self.report_indefinite[p]}
+        broke = [True] * len(ids) if info is None else [bool(i) for i in info]
+        report = {p for p, b in zip(ids, broke) if b and self.report_indefinite[p]}
         self.indefinite[list(report)] = True
         return report
 
