@@ -247,3 +247,108 @@ def test_experiment_configs_compose_and_instantiate(
     assert len(dm.data_train) == n_train and model.hparams.depth_scale == dm.depth_scale
     x, _ = next(iter(dm.train_dataloader()))
     assert model(x).shape == (len(x), 6)
+
+
+def _tz_r2(module, x, y) -> float:
+    module.eval()
+    with torch.no_grad():
+        tz = module(x)[:, 5]
+    return 1.0 - float(((tz - y[:, 5]) ** 2).sum() / ((y[:, 5] - y[:, 5].mean()) ** 2).sum())
+
+
+def test_standardized_targets_learn_a_torque_that_si_units_drown(one_thread):
+    """A twist-like torque (+-0.02 N m beside forces up to 7 N, as the forearm twists' tau_z, which is not a
+    function of the forces as tau_x, tau_y are): the SI loss leaves it unlearnt, the standardized one learns
+    it, with the same network, data, optimizer and steps."""
+    depth, reference, wrench = synthetic_dents(32, seed=3)
+    # tau_z, a smooth function of the dent's centre column that the forces do not carry
+    _, u = np.meshgrid(np.arange(H), np.arange(W), indexing="ij")
+    dent = reference - depth
+    centre_u = np.nansum(dent * u, axis=(1, 2)) / np.nansum(dent, axis=(1, 2))
+    wrench[:, 5] = 0.02 * (centre_u - W / 2) / W * 2
+    x = torch.from_numpy(normalize_depth(depth, reference, 0.01)[:, None])
+    y = torch.from_numpy(wrench)
+    r2 = {}
+    for scaling in ("si", "standardize"):
+        torch.manual_seed(0)
+        module = WrenchRegressionModule(
+            WrenchCNN(image_shape=(H, W), channels=(8, 16), pool_size=2, hidden_features=(64,), dropout=0.0),
+            lr=0.01,
+            momentum=0.9,
+            target_scaling=scaling,
+        )
+        if scaling == "standardize":
+            module.fit_target_scaling(wrench)
+            np.testing.assert_allclose(module.wrench_std.numpy(), wrench.std(axis=0, ddof=1), rtol=1e-5)
+        optimizer = module.configure_optimizers()
+        module.train()
+        for _ in range(150):
+            optimizer.zero_grad()
+            module.wrench_loss(module(x), y).backward()
+            optimizer.step()
+        r2[scaling] = _tz_r2(module, x, y)
+    assert r2["standardize"] > 0.8, r2
+    assert r2["si"] < 0.3, r2
+
+
+def test_standardized_fit_stores_the_training_statistics_and_returns_si_wrenches(tmp_path, one_thread):
+    _write_shard(tmp_path / "poke_000.h5", 40, seed=1)
+    dm = TactileWrenchDataModule([str(tmp_path / "poke_*.h5")], batch_size=8)
+    torch.manual_seed(0)
+
+    def net():
+        return WrenchCNN(image_shape=(H, W), channels=(4, 8), pool_size=2, hidden_features=(16,))
+
+    module = WrenchRegressionModule(net(), target_scaling="standardize")
+    trainer = L.Trainer(
+        max_epochs=2,
+        accelerator="cpu",
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+    )
+    trainer.fit(module, datamodule=dm)
+    train_wrench = dm.train_wrenches()
+    assert train_wrench.shape == (len(dm.data_train), 6)  # the training split only
+    np.testing.assert_allclose(module.wrench_mean.numpy(), train_wrench.mean(axis=0), rtol=1e-5, atol=1e-7)
+    expected_std = train_wrench.std(axis=0, ddof=1)
+    expected_std[expected_std == 0] = 1.0  # the synthetic tau_z is 0: kept in SI units
+    np.testing.assert_allclose(module.wrench_std.numpy(), expected_std, rtol=1e-5)
+    # the loss is standardized, the logged per-component errors stay in SI units
+    m = {k: float(v) for k, v in trainer.callback_metrics.items()}
+    per_component = np.array([m[f"val/mse_{c}"] for c in ("fx", "fy", "fz", "tx", "ty", "tz")])
+    assert np.isclose(m["val/loss"], np.mean(per_component / expected_std**2), rtol=1e-3)
+    assert not np.isclose(m["val/loss"], np.mean(per_component), rtol=1e-2)
+
+    depth, reference, _ = synthetic_dents(5, seed=9)
+    x = torch.from_numpy(normalize_depth(depth, reference, 0.01)[:, None])
+    module.eval()
+    with torch.no_grad():
+        si = module(x).numpy()
+        np.testing.assert_allclose(si, (module.wrench_mean + module.wrench_std * module.net(x)).numpy())
+    ckpt = tmp_path / "wrench.ckpt"
+    trainer.save_checkpoint(ckpt)
+    rebuilt = WrenchRegressionModule.from_checkpoint(ckpt)
+    assert rebuilt.hparams.target_scaling == "standardize"
+    np.testing.assert_allclose(rebuilt.wrench_std.numpy(), module.wrench_std.numpy())
+    np.testing.assert_allclose(rebuilt.predict_wrench(depth), si, rtol=1e-5, atol=1e-6)
+
+    # a checkpoint saved before the scaling existed loads as SI (identity statistics)
+    old = torch.load(ckpt, weights_only=False)
+    del old["state_dict"]["wrench_mean"], old["state_dict"]["wrench_std"]
+    old["hyper_parameters"].pop("target_scaling")
+    torch.save(old, tmp_path / "old.ckpt")
+    legacy = WrenchRegressionModule.from_checkpoint(tmp_path / "old.ckpt")
+    assert legacy.hparams.target_scaling == "si"
+    np.testing.assert_array_equal(legacy.wrench_mean.numpy(), np.zeros(6))
+    np.testing.assert_array_equal(legacy.wrench_std.numpy(), np.ones(6))
+    with torch.no_grad():
+        np.testing.assert_allclose(legacy(x).numpy(), module.net(x).numpy(), rtol=1e-6)
+
+    with pytest.raises(ValueError, match="target_scaling must be one of"):
+        WrenchRegressionModule(net(), target_scaling="normalise")
+    with pytest.raises(ValueError, match="NaN or inf"):
+        module.fit_target_scaling(np.full((4, 6), np.nan))
+    with pytest.raises(ValueError, match=r"\(N >= 2, 6\)"):
+        module.fit_target_scaling(np.zeros((4, 3)))

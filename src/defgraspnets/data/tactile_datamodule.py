@@ -410,6 +410,14 @@ class TactileWrenchDataModule(L.LightningDataModule):
             val.append(TactileWrenchDataset(shard, va, self.depth_scale))
         self.data_train, self.data_val = ConcatDataset(train), ConcatDataset(val)
 
+    def train_wrenches(self) -> np.ndarray:
+        """(N, 6) wrenches [N, N m] of the training split, in its order (the statistics of
+        ``WrenchRegressionModule(target_scaling="standardize")``)."""
+        if self.data_train is None:
+            raise RuntimeError("call setup() first")
+        parts = [d.shard.samples.wrench[d.indices] for d in self.data_train.datasets]
+        return np.concatenate(parts).astype(np.float64) if parts else np.zeros((0, 6))
+
     @property
     def image_shape(self) -> tuple[int, int]:
         if not self.shards:

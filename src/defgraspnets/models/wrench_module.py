@@ -1,7 +1,13 @@
 """LightningModule training the wrench CNN (thesis §3.4) and mapping depth images to wrenches.
 
-Loss: mean squared error over the six wrench components in SI units (N^2 and (N m)^2 mixed, as the
-thesis reports it: validation MSE 0.03 poking, 0.057 forearm, 0.1 combined). Optimizer: SGD,
+Loss (``target_scaling``): ``"si"`` (default, the thesis's) = mean squared error over the six wrench
+components in SI units (N^2 and (N m)^2 mixed, as the thesis reports it: validation MSE 0.03 poking,
+0.057 forearm, 0.1 combined). There torques of a few 0.01 N m weigh ~1e-4 of forces of several newtons,
+and a twist torque is not learnt (README). ``"standardize"``: the network predicts each component
+standardized by the mean and standard deviation of the training split's wrenches (computed at fit
+set-up from the datamodule's ``train_wrenches()``, stored in the checkpoint as the buffers
+``wrench_mean`` / ``wrench_std``), the loss is the MSE of the standardized components, and the module
+still returns SI wrenches. The per-component metrics below are in SI units either way. Optimizer: SGD,
 learning rate 0.01 "with no decay"; the thesis does not state a momentum, so the default is plain
 SGD (momentum 0, the Keras and PyTorch default), overridable.
 
@@ -29,6 +35,7 @@ from defgraspnets.data.tactile_schema import WRENCH_COMPONENTS
 __all__ = ["WrenchRegressionModule"]
 
 _SHORT = ("fx", "fy", "fz", "tx", "ty", "tz")
+TARGET_SCALINGS = ("si", "standardize")
 _STAGES = ("train", "val", "test")
 assert len(_SHORT) == len(WRENCH_COMPONENTS)
 
@@ -42,6 +49,7 @@ class WrenchRegressionModule(L.LightningModule):
         momentum: SGD momentum (not given in the thesis; 0).
         weight_decay: L2 penalty (0).
         depth_scale: input normalization length [m]; must equal the datamodule's.
+        target_scaling: ``"si"`` (loss in SI units, thesis) or ``"standardize"`` (module docstring).
     """
 
     def __init__(
@@ -51,20 +59,57 @@ class WrenchRegressionModule(L.LightningModule):
         momentum: float = 0.0,
         weight_decay: float = 0.0,
         depth_scale: float = 0.01,
+        target_scaling: str = "si",
     ):
         super().__init__()
+        if target_scaling not in TARGET_SCALINGS:
+            raise ValueError(f"target_scaling must be one of {TARGET_SCALINGS}, got {target_scaling!r}")
         self.save_hyperparameters(logger=False, ignore=["net"])
         self.net = net
         self.loss_fn = nn.MSELoss()
+        # wrench = wrench_mean + wrench_std * net(x); identity unless target_scaling="standardize"
+        self.register_buffer("wrench_mean", torch.zeros(len(_SHORT)))
+        self.register_buffer("wrench_std", torch.ones(len(_SHORT)))
         # keys must not shadow nn.Module attributes ("train"), hence the suffix
         self.metrics = nn.ModuleDict({f"{stage}_mse": MeanSquaredError(num_outputs=6) for stage in _STAGES})
         self.reference_depth: torch.Tensor | None = None
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(B, 1, H, W) normalized input -> (B, 6) wrench [N, N m]."""
-        return self.net(x)
+        return self.wrench_mean + self.wrench_std * self.net(x)
+
+    def wrench_loss(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """The training loss of predicted against true wrenches [N, N m]: their MSE in SI units, or of the
+        standardized components (``target_scaling="standardize"``)."""
+        return self.loss_fn(pred / self.wrench_std, target / self.wrench_std)
+
+    def fit_target_scaling(self, wrenches) -> None:
+        """Set ``wrench_mean`` / ``wrench_std`` from (N, 6) training wrenches [N, N m]
+        (``target_scaling="standardize"``; a constant component keeps the scale 1)."""
+        w = torch.as_tensor(np.asarray(wrenches, dtype=np.float64))
+        if w.ndim != 2 or w.shape[1] != len(_SHORT) or len(w) < 2:
+            raise ValueError(f"need (N >= 2, 6) training wrenches, got shape {tuple(w.shape)}")
+        if not torch.isfinite(w).all():
+            raise ValueError("training wrenches contain NaN or inf")
+        std = w.std(dim=0)
+        std = torch.where(std > 1e-12 * std.max().clamp_min(1e-300), std, torch.ones_like(std))
+        self.wrench_mean.copy_(w.mean(dim=0).to(self.wrench_mean))
+        self.wrench_std.copy_(std.to(self.wrench_std))
 
     # ------------------------------------------------------------------ training
+    def setup(self, stage: str) -> None:
+        # before a resumed checkpoint is restored (which then brings back the same statistics)
+        if stage != "fit" or self.hparams.target_scaling != "standardize":
+            return
+        dm = getattr(self.trainer, "datamodule", None)
+        if dm is None or not hasattr(dm, "train_wrenches"):
+            raise ValueError(
+                'target_scaling="standardize" needs a datamodule with train_wrenches() '
+                "(e.g. TactileWrenchDataModule) to compute the wrench statistics"
+            )
+        dm.setup("fit")
+        self.fit_target_scaling(dm.train_wrenches())
+
     def on_fit_start(self) -> None:
         dm = getattr(self.trainer, "datamodule", None)
         if dm is None:
@@ -82,7 +127,7 @@ class WrenchRegressionModule(L.LightningModule):
     def _step(self, batch, stage: str) -> torch.Tensor:
         x, y = batch
         pred = self(x)
-        loss = self.loss_fn(pred, y)
+        loss = self.wrench_loss(pred, y)
         self.metrics[f"{stage}_mse"].update(pred.detach(), y)
         self.log(
             f"{stage}/loss", loss, on_step=stage == "train", on_epoch=True, prog_bar=True, batch_size=len(y)
@@ -160,6 +205,10 @@ class WrenchRegressionModule(L.LightningModule):
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         self.reference_depth = checkpoint.get("reference_depth")
+        state = checkpoint.get("state_dict")
+        if state is not None:  # checkpoints saved before the target scaling existed: SI (identity)
+            state.setdefault("wrench_mean", torch.zeros(len(_SHORT)))
+            state.setdefault("wrench_std", torch.ones(len(_SHORT)))
 
     # ------------------------------------------------------------------ inference
     def _reference_on(self, device: torch.device) -> torch.Tensor:
