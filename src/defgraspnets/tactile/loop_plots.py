@@ -5,6 +5,9 @@
   analogue, :func:`force_proxy_figure`);
 - pose correction and forearm support (thesis §3.5, Figs 3.9-3.10, :mod:`defgraspnets.tactile.closed_loops`):
   wrench and sensor motion per control step (:func:`pose_correction_figure`);
+- edge-following LfD (thesis §5.4, :mod:`defgraspnets.tactile.lfd.experiments`): the demonstrations on the
+  straight pipes, the policy's rollout on the curved pipe and its HMM state weights
+  (:func:`edge_following_figure`);
 - mixed-manipulation LfD (thesis §5.5, :mod:`defgraspnets.tactile.lfd.manipulation`): object and palm
   paths of demonstrations and rollouts, prism yaw over time (:func:`mixed_manipulation_figure`).
 
@@ -27,6 +30,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "contour_trajectories_figure",
+    "edge_following_figure",
     "force_proxy_figure",
     "mixed_manipulation_figure",
     "pose_correction_figure",
@@ -125,6 +129,50 @@ def pose_correction_figure(runs: Mapping[str, ClosedLoopRun]):
         ax.set_xlabel("pose index (after step k)")
         ax.set_ylabel("sensor displacement [mm] / rotation [deg]")
         ax.legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+# ------------------------------------------------------------------------------ edge-following LfD
+def edge_following_figure(result: Mapping):
+    """Three panels of an :func:`~defgraspnets.tactile.lfd.experiments.edge_following_experiment` result:
+    the membrane pole of each demonstration on its straight pipe (3-D, [m]), the policy's rollout on the
+    unseen curved pipe (pipe axis black, pole blue in contact, red without), and the forward-variable
+    weights of the HMM states over the rollout's steps (the GMR mixing weights of eq. 5.18)."""
+    plt = _pyplot()
+    report, height = result["report"], result["height"]
+    fig = plt.figure(figsize=(16, 5))
+    ax = fig.add_subplot(1, 3, 1, projection="3d")
+    for k, demo in enumerate(result["demonstrations"]):
+        pole = demo.poses[:, :3, :3] @ np.array([0.0, 0.0, height]) + demo.poses[:, :3, 3]
+        ax.plot(*pole.T, "-", lw=1, label=f"demo {k}")
+        ax.scatter(*pole[~demo.in_contact].T, c="tab:red", s=6)
+    ax.set_title(f"{report['n_demonstrations']} teacher demonstrations (straight pipes)")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_zlabel("z [m]")
+    ax.legend(fontsize=7, loc="upper left")
+    ax = fig.add_subplot(1, 3, 2, projection="3d")
+    rollout = result["rollout"]
+    ax.plot(*result["scene"].path.T, "k-", lw=3, alpha=0.4, label="curved pipe (unseen)")
+    pole = rollout.pole_positions(height)
+    ax.scatter(*pole.T, c=np.where(rollout.in_contact, "tab:blue", "tab:red"), s=8, label="membrane pole")
+    ax.set_title(
+        f"policy rollout: contact {report['rollout_contact_fraction']:.2f}, "
+        f"{report['rollout_distance_along_pipe_m']:.2f} m along the pipe"
+    )
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_zlabel("z [m]")
+    ax.legend(fontsize=7, loc="upper left")
+    ax = fig.add_subplot(1, 3, 3)
+    for j in range(rollout.weights.shape[1]):
+        ax.plot(rollout.weights[:, j], "-", label=f"state {j}")
+    ax.plot(rollout.in_contact.astype(float), "k:", lw=1, label="in contact")
+    ax.set_xlabel("rollout step (1 Hz)")
+    ax.set_ylabel("forward-variable weight h_j")
+    ax.set_title(f"{report['hmm_states']}-state HMM, GMR weights")
+    ax.legend(fontsize=8)
     fig.tight_layout()
     return fig
 

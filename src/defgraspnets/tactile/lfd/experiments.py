@@ -254,12 +254,16 @@ def edge_following_experiment(
     rollout_steps: int = 60,
     seed: int = 0,
 ) -> dict:
-    """Demonstrate on the straight pipe (6 poses), learn (2-state HMM), roll out on the curved pipe."""
+    """Demonstrate on the straight pipe (6 poses), learn (2-state HMM), roll out on the curved pipe.
+
+    Returns the ``demonstrations``, the ``policy``, the ``rollout``, its ``scene``, the membrane pole's
+    ``height`` above the sensor origin [m] and a JSON-ready ``report``."""
     demos = edge_following_demonstrations(sim, teacher, steps=steps)
     policy = fit_edge_following_policy(demos, seed=seed)
-    scene = curved_pipe_scene(pole_height(sim), steps=rollout_steps)
+    height = pole_height(sim)
+    scene = curved_pipe_scene(height, steps=rollout_steps)
     rollout = rollout_policy(sim, policy, scene)
-    s = path_progress(scene.path, rollout.pole_positions(pole_height(sim)))
+    s = path_progress(scene.path, rollout.pole_positions(height))
     contact = rollout.in_contact
     first = int(np.argmax(contact)) if contact.any() else None
     steps_len = np.linalg.norm(np.diff(rollout.poses[:, :3, 3], axis=0), axis=1)
@@ -271,6 +275,7 @@ def edge_following_experiment(
         "policy": policy,
         "rollout": rollout,
         "scene": scene,
+        "height": height,
         "report": {
             "n_demonstrations": len(demos),
             "demonstration_contact_fraction": [
