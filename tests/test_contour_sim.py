@@ -17,6 +17,7 @@ from defgraspnets.tactile.contour_sim import (
     pole_height,
     pole_positions,
     run_contour_following,
+    run_report,
     standard_scenes,
 )
 from defgraspnets.tactile.fast_membrane import (
@@ -93,6 +94,31 @@ def test_straight_pipe_keeps_contact_without_housing_contact_and_tracks_force(si
     assert m.distance_along > 0.8 * GAINS.tracking_step * (len(c) - 3)
     # the true force is a light touch: 0.5-3 N
     assert 0.5 < run.normal_force[c[3:]].mean() < 3.0
+    # force tracking in newtons (run_report): about the force the run's own F~-to-force line gives F~_des
+    rep = run_report(run, GAINS.desired_force, scene, pole_height(sim))
+    slope, intercept = np.polyfit(run.depth_proxy[c], run.normal_force[c], 1)
+    assert rep["desired_force_N"] == pytest.approx(slope * GAINS.desired_force + intercept)
+    error = run.normal_force[c] - rep["desired_force_N"]
+    assert rep["true_force_rms_error_N"] == pytest.approx(np.sqrt(np.mean(error**2)))
+    assert rep["true_force_rms_error_N"] < 0.25 * rep["desired_force_N"]
+    assert json.loads(json.dumps(rep))["housing_contact_steps"] == 0
+
+
+def test_surface_mode_follows_the_limb_over_its_bump(sim):
+    """Surface mode (user plane normal n_p) on the limb-like scene: contact kept over the bump, no housing
+    contact, progress along the limb at ~K_v, and a force that stays near its set point in newtons."""
+    h = pole_height(sim)
+    scene = standard_scenes(h)["limb"]
+    assert scene.parameters(GAINS).mode == "surface"
+    run = run_contour_following(sim, scene, GAINS)
+    rep = run_report(run, GAINS.desired_force, scene, h)
+    assert run.stopped_early is None and rep["steps"] == scene.steps
+    assert rep["contact_fraction"] == 1.0 and rep["housing_contact_steps"] == 0
+    contact_steps = rep["steps"] - 1 - rep["first_contact_step"]
+    assert rep["distance_along_path_m"] > 0.8 * GAINS.tracking_step * contact_steps
+    assert 1.0 < rep["desired_force_N"] < 5.0
+    assert rep["true_force_rms_error_N"] < 0.2 * rep["desired_force_N"]
+    assert rep["true_force_max_N"] < 1.5 * rep["desired_force_N"]  # the bump does not spike the force
 
 
 def test_depth_proxy_correlates_with_true_force(sim):

@@ -355,11 +355,9 @@ class ContourRun:
         in_contact, housing_contact: (T,) bool.
         depth_proxy: (T,) ``F~`` [m]; normal_force: (T,) true force [N].
         n_points: (T,) deformed points seen.
-        metrics: :class:`~defgraspnets.tactile.contour.ContourRunMetrics` (force in ``F~`` units).
-        force_rms_error_newton: RMS of ``F - F_des,N`` over contact steps, ``F_des,N`` the force the
-            run's in-contact ``F~``-to-force fit assigns to ``F~_des`` [N].
-        path_error: (T,) distance of the membrane pole's contact region centroid to the scene path [m]
-            (NaN without contact).
+        metrics: :class:`~defgraspnets.tactile.contour.ContourRunMetrics` (force in ``F~`` units; the
+            force tracking in newtons and the distance along the scene's path are in :func:`run_report`).
+        stopped_early: why the run stopped before its last step (None: it did not).
     """
 
     poses: np.ndarray
@@ -493,7 +491,11 @@ def pearson_r(x, y) -> float:
 
 def run_report(run: ContourRun, desired_force: float, scene: ContourScene | None = None, height=None) -> dict:
     """JSON-ready summary of one run: the metrics of :func:`contour_run_metrics` plus the true force and,
-    given the ``scene`` and the pole ``height`` [m], the distance covered along the scene's path."""
+    given the ``scene`` and the pole ``height`` [m], the distance covered along the scene's path.
+
+    Force tracking in newtons: ``true_force_rms_error_N`` is the RMS of ``F - F_des,N`` over the contact
+    steps, ``F_des,N`` [N] being the force that the run's own least-squares line ``F = a F~ + b`` (over
+    its contact steps) assigns to ``F~_des`` = ``desired_force``; NaN with fewer than 3 contact steps."""
     m = run.metrics
     along_path = float("nan")
     if scene is not None and height is not None:
@@ -502,6 +504,11 @@ def run_report(run: ContourRun, desired_force: float, scene: ContourScene | None
     c = run.in_contact
     first = int(np.argmax(c)) if c.any() else len(c)
     force = run.normal_force[c]
+    desired_newton, rms_newton = float("nan"), float("nan")
+    if force.size >= 3 and np.ptp(run.depth_proxy[c]) > 0:
+        slope, intercept = np.polyfit(run.depth_proxy[c], force, 1)
+        desired_newton = float(slope * desired_force + intercept)
+        rms_newton = float(np.sqrt(np.mean((force - desired_newton) ** 2)))
     return {
         "steps": int(len(c)),
         "first_contact_step": first,
@@ -511,6 +518,8 @@ def run_report(run: ContourRun, desired_force: float, scene: ContourScene | None
         "true_force_mean_N": float(force.mean()) if force.size else float("nan"),
         "true_force_std_N": float(force.std()) if force.size else float("nan"),
         "true_force_max_N": float(force.max()) if force.size else float("nan"),
+        "desired_force_N": desired_newton,
+        "true_force_rms_error_N": rms_newton,
         "path_length_m": m.path_length,
         "distance_along_m": m.distance_along,
         "distance_along_path_m": along_path,
