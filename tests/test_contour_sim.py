@@ -101,6 +101,8 @@ def test_straight_pipe_keeps_contact_without_housing_contact_and_tracks_force(si
     error = run.normal_force[c] - rep["desired_force_N"]
     assert rep["true_force_rms_error_N"] == pytest.approx(np.sqrt(np.mean(error**2)))
     assert rep["true_force_rms_error_N"] < 0.25 * rep["desired_force_N"]
+    assert rep["force_proxy_pearson_r"] == pytest.approx(pearson_r(run.depth_proxy[c], run.normal_force[c]))
+    assert rep["force_proxy_pearson_r"] > 0.5  # within one scene F~ follows the force
     assert json.loads(json.dumps(rep))["housing_contact_steps"] == 0
 
 

@@ -495,7 +495,9 @@ def run_report(run: ContourRun, desired_force: float, scene: ContourScene | None
 
     Force tracking in newtons: ``true_force_rms_error_N`` is the RMS of ``F - F_des,N`` over the contact
     steps, ``F_des,N`` [N] being the force that the run's own least-squares line ``F = a F~ + b`` (over
-    its contact steps) assigns to ``F~_des`` = ``desired_force``; NaN with fewer than 3 contact steps."""
+    its contact steps) assigns to ``F~_des`` = ``desired_force``; ``force_proxy_pearson_r`` is the
+    correlation of ``F~`` and ``F`` over those steps (the Fig. 4.4 analogue within one scene). NaN with
+    fewer than 3 contact steps."""
     m = run.metrics
     along_path = float("nan")
     if scene is not None and height is not None:
@@ -504,11 +506,13 @@ def run_report(run: ContourRun, desired_force: float, scene: ContourScene | None
     c = run.in_contact
     first = int(np.argmax(c)) if c.any() else len(c)
     force = run.normal_force[c]
-    desired_newton, rms_newton = float("nan"), float("nan")
+    desired_newton, rms_newton, proxy_r = float("nan"), float("nan"), float("nan")
     if force.size >= 3 and np.ptp(run.depth_proxy[c]) > 0:
         slope, intercept = np.polyfit(run.depth_proxy[c], force, 1)
         desired_newton = float(slope * desired_force + intercept)
         rms_newton = float(np.sqrt(np.mean((force - desired_newton) ** 2)))
+        if np.ptp(force) > 0:
+            proxy_r = pearson_r(run.depth_proxy[c], force)
     return {
         "steps": int(len(c)),
         "first_contact_step": first,
@@ -520,6 +524,7 @@ def run_report(run: ContourRun, desired_force: float, scene: ContourScene | None
         "true_force_max_N": float(force.max()) if force.size else float("nan"),
         "desired_force_N": desired_newton,
         "true_force_rms_error_N": rms_newton,
+        "force_proxy_pearson_r": proxy_r,
         "path_length_m": m.path_length,
         "distance_along_m": m.distance_along,
         "distance_along_path_m": along_path,
