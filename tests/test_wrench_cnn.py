@@ -104,13 +104,16 @@ def _write_shard(path, n, seed):
     return writer.finalize()
 
 
-def test_lightning_fit_metrics_and_inference_call(tmp_path, one_thread):
+def _small_net() -> WrenchCNN:
+    return WrenchCNN(image_shape=(H, W), channels=(4, 8), pool_size=2, hidden_features=(16,))
+
+
+def _fit_two_epochs(tmp_path, **module_options):
+    """A small CNN fitted for 2 epochs on a 40-sample synthetic shard: (trainer, module, datamodule)."""
     _write_shard(tmp_path / "poke_000.h5", 40, seed=1)
     dm = TactileWrenchDataModule([str(tmp_path / "poke_*.h5")], batch_size=8)
     torch.manual_seed(0)
-    module = WrenchRegressionModule(
-        WrenchCNN(image_shape=(H, W), channels=(4, 8), pool_size=2, hidden_features=(16,))
-    )
+    module = WrenchRegressionModule(_small_net(), **module_options)
     trainer = L.Trainer(
         max_epochs=2,
         accelerator="cpu",
@@ -120,6 +123,11 @@ def test_lightning_fit_metrics_and_inference_call(tmp_path, one_thread):
         enable_model_summary=False,
     )
     trainer.fit(module, datamodule=dm)
+    return trainer, module, dm
+
+
+def test_lightning_fit_metrics_and_inference_call(tmp_path, one_thread):
+    trainer, module, dm = _fit_two_epochs(tmp_path)
     m = {k: float(v) for k, v in trainer.callback_metrics.items()}
     per_component = [m[f"val/mse_{c}"] for c in ("fx", "fy", "fz", "tx", "ty", "tz")]
     assert np.isclose(m["val/loss"], np.mean(per_component), rtol=1e-4)
@@ -147,9 +155,7 @@ def test_lightning_fit_metrics_and_inference_call(tmp_path, one_thread):
     # the reference image travels with the checkpoint
     ckpt = tmp_path / "wrench.ckpt"
     trainer.save_checkpoint(ckpt)
-    loaded = WrenchRegressionModule.load_from_checkpoint(
-        ckpt, net=WrenchCNN(image_shape=(H, W), channels=(4, 8), pool_size=2, hidden_features=(16,))
-    )
+    loaded = WrenchRegressionModule.load_from_checkpoint(ckpt, net=_small_net())
     np.testing.assert_allclose(loaded.predict_wrench(depth), expected, rtol=1e-5, atol=1e-6)
     # ... and so do the network's constructor arguments: no net needed to load it
     rebuilt = WrenchRegressionModule.from_checkpoint(ckpt)
@@ -292,23 +298,7 @@ def test_standardized_targets_learn_a_torque_that_si_units_drown(one_thread):
 
 
 def test_standardized_fit_stores_the_training_statistics_and_returns_si_wrenches(tmp_path, one_thread):
-    _write_shard(tmp_path / "poke_000.h5", 40, seed=1)
-    dm = TactileWrenchDataModule([str(tmp_path / "poke_*.h5")], batch_size=8)
-    torch.manual_seed(0)
-
-    def net():
-        return WrenchCNN(image_shape=(H, W), channels=(4, 8), pool_size=2, hidden_features=(16,))
-
-    module = WrenchRegressionModule(net(), target_scaling="standardize")
-    trainer = L.Trainer(
-        max_epochs=2,
-        accelerator="cpu",
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-    )
-    trainer.fit(module, datamodule=dm)
+    trainer, module, dm = _fit_two_epochs(tmp_path, target_scaling="standardize")
     train_wrench = dm.train_wrenches()
     assert train_wrench.shape == (len(dm.data_train), 6)  # the training split only
     np.testing.assert_allclose(module.wrench_mean.numpy(), train_wrench.mean(axis=0), rtol=1e-5, atol=1e-7)
@@ -347,7 +337,7 @@ def test_standardized_fit_stores_the_training_statistics_and_returns_si_wrenches
         np.testing.assert_allclose(legacy(x).numpy(), module.net(x).numpy(), rtol=1e-6)
 
     with pytest.raises(ValueError, match="target_scaling must be one of"):
-        WrenchRegressionModule(net(), target_scaling="normalise")
+        WrenchRegressionModule(_small_net(), target_scaling="normalise")
     with pytest.raises(ValueError, match="NaN or inf"):
         module.fit_target_scaling(np.full((4, 6), np.nan))
     with pytest.raises(ValueError, match=r"\(N >= 2, 6\)"):
