@@ -416,6 +416,17 @@ def test_perturbed_forearm_repeat_round_trip(small_sensor, tmp_path):
     assert 0.9 * mu * -f[2] < f[0] <= mu * -f[2] * (1 + 1e-3)
 
 
+def _two_runs_into_one_shard(sensor, indenter, paths, out, experiment, stream):
+    """A shard written by a run over the first two paths, then a resumed run over all of them:
+    (the first run's counts, the second's, the finished shard's samples)."""
+    sim = make_simulator(sensor, indenter, 1500.0, closed=True, batch_size=2, intrinsics=CAMERA)
+    writer = TactileShardWriter(out, sensor_references(sim), experiment)
+    first = generate_tactile_shard(sim, paths[:2], writer, progress=False, stream=stream)
+    counts = generate_tactile_shard(sim, paths, writer, progress=False, stream=stream)
+    writer.finalize()
+    return first, counts, read_tactile_shard(out).samples
+
+
 def test_streamed_poke_paths_match_batches_and_resume(small_sensor, tmp_path):
     """stream=True: three poke paths flow through two problems (each from the exact inflated membrane);
     the shard holds the samples the batches give, to the solver's tolerance, and a second run over more
@@ -428,16 +439,13 @@ def test_streamed_poke_paths_match_batches_and_resume(small_sensor, tmp_path):
     ]
     shards = {}
     for stream in (False, True):
-        sim = make_simulator(small_sensor, sphere, 1500.0, closed=True, batch_size=2, intrinsics=CAMERA)
         out = tmp_path / f"poke_{stream}.h5"
-        writer = TactileShardWriter(out, sensor_references(sim), "poke")
-        first = generate_tactile_shard(sim, paths[:2], writer, progress=False, stream=stream)
-        counts = generate_tactile_shard(sim, paths, writer, progress=False, stream=stream)
+        first, counts, shards[stream] = _two_runs_into_one_shard(
+            small_sensor, sphere, paths, out, "poke", stream
+        )
         assert first["samples"] + first["failed"] == 4
         assert counts["skipped"] == 2 and counts["paths"] == 1
         assert counts["samples"] + counts["failed"] == 2
-        writer.finalize()
-        shards[stream] = read_tactile_shard(out).samples
     a, b = shards[False], shards[True]
     np.testing.assert_array_equal(np.sort(b.sample_id), np.sort(a.sample_id))
     assert len(a.sample_id) == 6
@@ -472,15 +480,12 @@ def test_streamed_forearm_paths_match_batches_and_resume(small_sensor, tmp_path,
     monkeypatch.setattr(MembraneSimulator, "press_and_move_stream", spy)
     shards = {}
     for stream in (False, True):
-        sim = make_simulator(small_sensor, FOREARM, 1500.0, closed=True, batch_size=2, intrinsics=CAMERA)
         out = tmp_path / f"forearm_{stream}.h5"
-        writer = TactileShardWriter(out, sensor_references(sim), "forearm")
-        first = generate_tactile_shard(sim, paths[:2], writer, progress=False, stream=stream)
-        counts = generate_tactile_shard(sim, paths, writer, progress=False, stream=stream)
+        first, counts, shards[stream] = _two_runs_into_one_shard(
+            small_sensor, FOREARM, paths, out, "forearm", stream
+        )
         assert first["samples"] == 5 and first["failed"] == 0
         assert counts["skipped"] == 2 and counts["paths"] == 1 and counts["samples"] == 2
-        writer.finalize()
-        shards[stream] = read_tactile_shard(out).samples
     assert streamed == [2, 1]  # the streamed runs: all paths of any length in one stream, then the rest
     a, b = shards[False], shards[True]
     order_a, order_b = np.argsort(a.sample_id), np.argsort(b.sample_id)
