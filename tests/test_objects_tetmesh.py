@@ -64,6 +64,30 @@ def test_cache_hit_returns_identical_mesh_without_remeshing(tmp_path, monkeypatc
     assert sorted(p.suffix for p in tmp_path.iterdir()) == [".npz"]  # no temporary files left
 
 
+def test_a_machine_without_the_mesher_uses_the_cache_of_any_mesher_version(tmp_path, monkeypatch, caplog):
+    first = tet_mesh("cuboid_30x30x30", target_nodes=300, mesher="gmsh", cache_dir=tmp_path)
+
+    def forbidden(*args, **kwargs):
+        raise ModuleNotFoundError("the mesher is not installed here")
+
+    monkeypatch.setitem(TM._RUNNERS, "gmsh", forbidden)
+    monkeypatch.setattr(TM, "_mesher_version", lambda mesher: "unknown")
+    with caplog.at_level("INFO", logger=TM._log.name):
+        again = tet_mesh("cuboid_30x30x30", target_nodes=300, mesher="gmsh", cache_dir=tmp_path)
+    np.testing.assert_array_equal(again.points, first.points)
+    np.testing.assert_array_equal(again.tets, first.tets)
+    assert "gmsh is not installed; using the cached mesh made with gmsh" in caplog.text
+    # only the same surface with the same settings qualifies: other settings or another surface under the
+    # same name would need the mesher
+    with pytest.raises(ModuleNotFoundError):
+        tet_mesh("cuboid_30x30x30", target_nodes=301, mesher="gmsh", cache_dir=tmp_path)
+    other = get_object("cuboid_30x30x30").surface.copy()
+    other.apply_scale(1.1)
+    with pytest.raises(ModuleNotFoundError):
+        tetrahedralize(other, target_nodes=300, mesher="gmsh", cache_dir=tmp_path, name="cuboid_30x30x30")
+    assert len(list(tmp_path.iterdir())) == 1  # nothing written
+
+
 def test_cache_dir_from_environment(tmp_path, monkeypatch):
     monkeypatch.setenv("DEFGRASPNETS_CACHE", str(tmp_path / "root"))
     assert TM.default_cache_dir() == tmp_path / "root" / "tetmeshes"

@@ -25,7 +25,9 @@ degenerate tets) whose volume matches the surface volume within ``max_volume_err
 faces plus every setting that changes the result, in ``cache_dir`` (default
 ``$DEFGRASPNETS_CACHE/tetmeshes``, else ``$XDG_CACHE_HOME/defgraspnets/tetmeshes``, else
 ``~/.cache/defgraspnets/tetmeshes``); written to a temporary file and renamed, so concurrent
-writers and interrupted runs never leave partial files.
+writers and interrupted runs never leave partial files. The key holds the mesher's version; where the
+mesher is not installed, an entry of the same surface and settings made by any version of it is used
+(a cache made on one machine serves a GPU machine without the mesher).
 """
 
 from __future__ import annotations
@@ -251,6 +253,40 @@ def _read_cache(path: Path, name: str) -> TetMesh | None:
         return None  # unreadable or invalid entry: re-mesh and overwrite
 
 
+def _read_cache_of_any_mesher_version(
+    directory: Path, name: str, mesh: trimesh.Trimesh, settings: dict
+) -> TetMesh | None:
+    """The newest valid cache entry of this surface and these settings made by any version of the
+    mesher, for a machine where the mesher is not installed (e.g. a GPU machine given a cache made
+    elsewhere). An entry qualifies only if its key, recomputed from its own mesher version, is its
+    file name's: same surface, same settings otherwise."""
+    found = []
+    for path in directory.glob(f"{_safe(name)}-*.npz"):
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                version = json.loads(str(data["meta"]))["mesher_version"]
+        except (OSError, KeyError, ValueError, TypeError):
+            continue
+        if not isinstance(version, str) or version == "unknown":
+            continue
+        key = _cache_key(mesh, dict(settings, mesher_version=version))[:24]
+        if path.name == f"{_safe(name)}-{key}.npz":
+            found.append((path.stat().st_mtime, path, version))
+    for _, path, version in sorted(found, reverse=True):
+        cached = _read_cache(path, name)
+        if cached is not None:
+            _log.info(
+                "%s: %s is not installed; using the cached mesh made with %s %s (%s)",
+                name,
+                settings["mesher"],
+                settings["mesher"],
+                version,
+                path.name,
+            )
+            return cached
+    return None
+
+
 def _write_cache(path: Path, mesh: TetMesh, meta: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
@@ -328,6 +364,10 @@ def tetrahedralize(
         path = directory / f"{_safe(name)}-{_cache_key(mesh, settings)[:24]}.npz"
         if path.is_file():
             cached = _read_cache(path, name)
+            if cached is not None:
+                return cached
+        if settings["mesher_version"] == "unknown":  # the mesher is not installed here
+            cached = _read_cache_of_any_mesher_version(directory, name, mesh, settings)
             if cached is not None:
                 return cached
 
