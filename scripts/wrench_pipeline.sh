@@ -21,8 +21,8 @@
 #   e.g. BATCH=128 generate-gpu poke 1 1 (the whole 10,000-state grid as one stream: 8.1 min on an
 #   H100 without shard writing, session 35; as 2 shards, `poke 1 2`, 306.8 + 290.0 s and 608 s end to
 #   end with 1.2 GB of HDF5, session 36), generate-gpu forearm 1 1 (one forearm pass, 1962 states:
-#   185.6 s) and REPEATS=5 BATCH=128 generate-gpu forearm 1 2 (the five-pass forearm set, 9810 states:
-#   ~14.4 min extrapolated from half of it). Each shard drains its stream once (a tail of a few slow
+#   185.6 s) and REPEATS=5 BATCH=128 generate-gpu forearm 1 1 (the five-pass forearm set, 9810 states:
+#   659.5 s on an H200, session 37). Each shard drains its stream once (a tail of a few slow
 #   paths), so fewer, larger shards are faster. Many processes on one GPU are slower than one.
 # train: the three models of §3.4 on the finished shards (trainer.max_time bounds each), then
 #   scripts/evaluate_wrench.py and scripts/benchmark_wrench_cnn.py; results into OUT_DIR.
