@@ -1,6 +1,7 @@
 """Real-world meshes from pip packages: located without import, repaired, scaled, clear errors."""
 
 import importlib.util
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -92,3 +93,82 @@ def test_unrepairable_shipped_mesh_is_rejected():
                           "models/assets/objects/meshes/bottle.stl", "MIT", None, "bottle")  # fmt: skip
     with pytest.raises(ObjectMeshError, match="non-manifold"):
         load_mesh_file(R.asset_path(spec), "bottle")
+
+
+def test_an_asset_directory_serves_a_machine_without_the_packages(tmp_path, monkeypatch):
+    """export_real_assets copies the files out of the installed packages; where the packages are
+    missing, $DEFGRASPNETS_ASSETS serves the same objects from those copies (same bytes, same mesh)."""
+    import hashlib
+    import types
+
+    site = tmp_path / "site"
+    duck = site / "pybullet_data" / "duck.obj"
+    lemon = site / "robosuite" / "models/assets/objects/meshes/lemon.stl"
+    for path, shape in (
+        (duck, trimesh.creation.icosphere(2, 30.0)),
+        (lemon, trimesh.creation.capsule(40.0, 15.0)),
+    ):
+        path.parent.mkdir(parents=True)
+        shape.export(path)
+    real_find_spec = importlib.util.find_spec
+    installed = {"pybullet_data": True, "robosuite": True}
+
+    def fake_find_spec(name, *args, **kwargs):
+        if name in installed:
+            return (
+                types.SimpleNamespace(submodule_search_locations=[str(site / name)])
+                if installed[name]
+                else None
+            )
+        return real_find_spec(name, *args, **kwargs)
+
+    monkeypatch.setattr(importlib.util, "find_spec", fake_find_spec)
+    monkeypatch.delenv(R.ASSETS_ENV, raising=False)
+    from_packages = {n: R.load_real_object(n) for n in ("rubber_duck", "lemon")}
+    written = R.export_real_assets(tmp_path / "assets", ["rubber_duck", "lemon"])
+    assert written == [
+        tmp_path / "assets/pybullet_data/duck.obj",
+        tmp_path / "assets/robosuite" / lemon.relative_to(site / "robosuite"),
+    ]
+    assert [p.read_bytes() for p in written] == [duck.read_bytes(), lemon.read_bytes()]
+    assert not list((tmp_path / "assets").rglob("*.partial"))
+
+    installed.update(pybullet_data=False, robosuite=False)  # another machine: no packages
+    with pytest.raises(MissingAssetPackageError, match=R.ASSETS_ENV):
+        R.load_real_object("rubber_duck")
+    with pytest.raises(MissingAssetPackageError, match="export_real_assets"):
+        R.export_real_assets(tmp_path / "more", ["lemon"])
+    monkeypatch.setenv(R.ASSETS_ENV, str(tmp_path / "assets"))
+    for name, (mesh, meta) in from_packages.items():
+        copy, copy_meta = R.load_real_object(name)
+        np.testing.assert_array_equal(copy.vertices, mesh.vertices)
+        np.testing.assert_array_equal(copy.faces, mesh.faces)
+        assert copy_meta["file_sha256"] == meta["file_sha256"]
+        assert (
+            copy_meta["file_sha256"]
+            == hashlib.sha256(Path(written[0 if name == "rubber_duck" else 1]).read_bytes()).hexdigest()
+        )
+    assert max(from_packages["rubber_duck"][0].extents) == pytest.approx(0.08)
+    with pytest.raises(MissingAssetPackageError, match="has no pybullet_data/bunny.obj"):
+        R.load_real_object("bunny")  # not exported
+    with pytest.raises(KeyError, match="unknown real objects"):
+        R.export_real_assets(tmp_path / "assets", ["banana"])
+
+
+def test_export_script_rejects_unknown_keys_and_names(tmp_path):
+    import subprocess
+    import sys
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "export_real_assets.py"
+    bad_key = subprocess.run(
+        [sys.executable, str(script), "bogus=1"], capture_output=True, text=True, cwd=tmp_path
+    )
+    assert bad_key.returncode != 0 and "bogus" in bad_key.stderr
+    bad_name = subprocess.run(
+        [sys.executable, str(script), f"out={tmp_path / 'a'}", "names=[banana]"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+    )
+    assert bad_name.returncode != 0 and "unknown real objects ['banana']" in bad_name.stderr
+    assert not (tmp_path / "a").exists()

@@ -15,6 +15,12 @@ pip package     version    size    objects (license)
                                    ``pip install --no-deps robosuite``)
 ==============  =========  ======  ==========================================================
 
+**Asset directory**: on a machine without these packages (e.g. a GPU machine for the dataset run),
+``$DEFGRASPNETS_ASSETS`` may name a directory holding copies of the files as
+``<package>/<path in package>``, written by :func:`export_real_assets` (``python
+scripts/export_real_assets.py out=DIR``) where the packages are installed; an installed package is
+always preferred, and the file's SHA-256 is in the object's metadata either way.
+
 Loading (:func:`load_real_object`): trimesh reads the file, :func:`repair_surface` merges seam
 vertices, drops degenerate faces, closes small holes and orients the winding outward (or raises
 :class:`ObjectMeshError`), the mesh is scaled from file units to a realistic size in metres, and its
@@ -27,6 +33,8 @@ from __future__ import annotations
 import hashlib
 import importlib.metadata
 import importlib.util
+import os
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,13 +43,19 @@ import trimesh
 from .surface import ObjectMeshError, repair_surface
 
 __all__ = [
+    "ASSETS_ENV",
     "REAL_OBJECTS",
     "MissingAssetPackageError",
     "RealMeshSpec",
     "asset_path",
+    "export_real_assets",
     "load_mesh_file",
     "load_real_object",
 ]
+
+
+ASSETS_ENV = "DEFGRASPNETS_ASSETS"
+"""Environment variable naming a directory of asset copies, ``<package>/<path in package>``."""
 
 
 class MissingAssetPackageError(ModuleNotFoundError):
@@ -143,10 +157,17 @@ def asset_path(spec: RealMeshSpec) -> Path:
     """
     found = importlib.util.find_spec(spec.package)
     if found is None or not found.submodule_search_locations:
+        copies = os.environ.get(ASSETS_ENV)
+        if copies:
+            path = Path(copies).expanduser() / spec.package / spec.path
+            if path.is_file():
+                return path
         raise MissingAssetPackageError(
             f"real object {spec.name!r} needs the mesh file {spec.path} from the package {spec.package!r}, "
             f"which is not installed: pip install {spec.distribution}"
-            + (" --no-deps  (only the asset files are used)" if spec.distribution == "robosuite" else ""),
+            + (" --no-deps  (only the asset files are used)" if spec.distribution == "robosuite" else "")
+            + f", or set {ASSETS_ENV} to a directory of copies (export_real_assets)"
+            + (f"; {ASSETS_ENV}={copies} has no {spec.package}/{spec.path}" if copies else ""),
             name=spec.package,
         )
     for root in found.submodule_search_locations:
@@ -158,6 +179,36 @@ def asset_path(spec: RealMeshSpec) -> Path:
         f"({', '.join(found.submodule_search_locations)}); it was checked with {spec.distribution} "
         f"{spec.tested_version}"
     )
+
+
+def export_real_assets(out_dir, names=None) -> list[Path]:
+    """Copy the mesh files of the real objects ``names`` (None: all) from their installed packages to
+    ``out_dir/<package>/<path in package>``, the layout ``$DEFGRASPNETS_ASSETS`` reads (module
+    docstring). Each file is written to a temporary name and renamed, so a stopped export leaves no
+    partial file.
+
+    Returns:
+        the written paths, in the order of ``names``.
+    Raises:
+        KeyError: unknown name; MissingAssetPackageError / FileNotFoundError: as :func:`asset_path`.
+    """
+    names = sorted(REAL_OBJECTS) if names is None else list(names)
+    unknown = [n for n in names if n not in REAL_OBJECTS]
+    if unknown:
+        raise KeyError(f"unknown real objects {unknown}; known: {', '.join(sorted(REAL_OBJECTS))}")
+    out_dir = Path(out_dir)
+    written = []
+    for name in names:
+        spec = REAL_OBJECTS[name]
+        source = asset_path(spec)
+        target = out_dir / spec.package / spec.path
+        if source.resolve() != target.resolve():
+            target.parent.mkdir(parents=True, exist_ok=True)
+            partial = target.with_name(target.name + ".partial")
+            shutil.copyfile(source, partial)
+            os.replace(partial, target)
+        written.append(target)
+    return written
 
 
 def _distribution_version(distribution: str) -> str | None:
