@@ -61,6 +61,7 @@ def main(cfg: DictConfig) -> None:
             linear_solver=cfg.linear_solver,
             max_newton_per_solve=cfg.max_newton_per_step,
             max_step_fraction=cfg.max_step_fraction,
+            friction_stick_slip=cfg.friction_stick_slip,
             stabilization=cfg.stabilization,
             stabilization_release=cfg.stabilization_release,
         ),

@@ -117,7 +117,9 @@ def test_released_stabilization_establishes_stiff_curved_first_contacts():
     mu, material = 0.7, fem.Material(1e7, 0.3, 1000.0, model="neohookean")
 
     def first_step(**overrides):
-        options = squeeze_solver_options(linear_solver="direct", **overrides)
+        # with the exact stick zone it was measured with: the squeeze path's 5e-3 h stick zone (a later
+        # default) converges all four grasps' first step without stabilization too
+        options = squeeze_solver_options(linear_solver="direct", friction_stick_slip=0.0, **overrides)
         return squeeze_ramp(
             make_squeeze_solver(mesh, grasps, material, mu, device="cpu", options=options), 1.5, 1
         )[0]

@@ -119,6 +119,7 @@ def test_damped_exact_newton_passes_a_soft_grasp_that_stalls_undamped(monkeypatc
         stabilization=0.0,  # the plain solve (released stabilization also passes this grasp undamped)
         stabilization_release=False,
         max_step_fraction=0.1,  # the engine's step cap it was measured with (the squeeze's 1 % came later)
+        friction_stick_slip=0.0,  # and the exact stick zone (the squeeze's 5e-3 h came later)
     )
 
     def ramp():
@@ -152,6 +153,7 @@ def test_damping_is_capped_so_a_tilted_stiff_grasp_keeps_its_newton_budget(monke
         stabilization=0.0,
         stabilization_release=False,
         max_step_fraction=0.1,  # the engine's step cap it was measured with (the squeeze's 1 % came later)
+        friction_stick_slip=0.0,  # and the exact stick zone (the squeeze's 5e-3 h came later)
     )
 
     def ramp():
@@ -274,7 +276,9 @@ def test_pads_on_a_curved_surface_hold_the_object_by_friction_from_the_first_ste
         assert np.all(tangential <= mu * normal * (1 + 1e-9) + 1e-12)
         assert normal.sum(axis=1) == pytest.approx(0.75, rel=1e-4)
 
-    loose, loose_turns = first_step(max_step_fraction=0.1, **plain)
+    # (measured with the exact stick zone; the squeeze path's 5e-3 h stick zone keeps grasp 1 from rolling
+    # even with the 10 % cap: it turns by 0.025 deg)
+    loose, loose_turns = first_step(max_step_fraction=0.1, friction_stick_slip=0.0, **plain)
     assert loose.status[0] == fem.SolveStatus.ESCAPED
     assert loose.status[1] == fem.SolveStatus.CONVERGED and loose_turns[1, 0] > 5.0
     # released stabilization (the squeeze default since session 24) holds the object from the first
@@ -282,3 +286,47 @@ def test_pads_on_a_curved_surface_hold_the_object_by_friction_from_the_first_ste
     held, held_turns = first_step(max_step_fraction=0.1)
     held.require_converged()
     assert np.all(held_turns[:, 0] < 0.1) and np.all(held_turns[:, 1] < 1e-3)
+
+
+def test_first_force_step_of_a_soft_faceted_cube_converges_with_the_friction_stick_zone():
+    """A 10 kPa fTetWild cube (30 mm, 268 vertices) and two sampled grasps whose axes the faceted "flat" face
+    tilts by 1.3 degrees: the pads first touch 1-2 vertices each and, within the first force step (0.3 N),
+    travel ~0.8 mm while their contacts grow to 5-6 vertices. With the exact stick zone (mu N / k_i, a
+    fraction of a micrometre) Newton's steps alternate between opposite slip directions and both grasps
+    spend the data path's 200 Newton iterations of the step; with the squeeze path's stick zone of 5e-3 h
+    both converge, in equilibrium (the pads press with F / 2 each, Coulomb holds at every contact), at the
+    exact-friction equilibrium found with an unlimited budget to within 1 % in travel and stress."""
+    from pathlib import Path
+
+    mesh = fem.TetMesh.load(Path(__file__).parent / "data" / "cuboid_30x30x30_ftetwild.vtu")
+    grasps = sample_antipodal_grasps(mesh, num_grasps=100, friction_coefficient=0.7, seed=0)[[36, 56]]
+    mu, force = 0.7, 0.3
+    material = fem.Material(1e4, 0.3, 1000.0, model="neohookean")
+
+    def first_step(**overrides):
+        options = squeeze_solver_options(linear_solver="direct", **overrides)
+        solver = make_squeeze_solver(mesh, grasps, material, mu, device="cpu", options=options)
+        return squeeze_ramp(solver, force, 1)[-1]
+
+    assert squeeze_solver_options().friction_stick_slip == 5e-3
+    assert squeeze_solver_options().max_newton_per_solve == 200
+    eq = first_step()
+    eq.require_converged()
+    assert np.all(eq.newton_iterations < 150) and np.all(eq.inverted_tets == 0)
+    np.testing.assert_allclose(eq.dof_force["grip"], force, rtol=1e-4)
+    left, right = (eq.body_force[name] for name in FINGER_NAMES)
+    np.testing.assert_allclose(left + right, 0.0, atol=1e-5)  # zero gravity: the pads' forces balance
+    for name in FINGER_NAMES:
+        normal = eq.contact_normal_force[name]
+        tangential = np.linalg.norm(eq.contact_friction_force[name], axis=-1)
+        assert np.all(tangential <= mu * normal * (1 + 1e-9) + 1e-12)
+        assert np.all((normal > 0).sum(axis=1) >= 4)  # the pads lie on the face (first touch: 1-2 vertices)
+    assert np.all(eq.travel["grip"] > 5e-4)  # ~0.8 mm per pad at 0.3 N: a soft object
+
+    stalled = first_step(friction_stick_slip=0.0)
+    assert np.all(stalled.status == fem.SolveStatus.NOT_CONVERGED)
+    exact = first_step(friction_stick_slip=0.0, max_newton_per_solve=0)  # no budget: it gets there
+    exact.require_converged()
+    assert np.all(exact.newton_iterations > 200)
+    np.testing.assert_allclose(eq.travel["grip"], exact.travel["grip"], rtol=1e-2)
+    np.testing.assert_allclose(eq.von_mises.mean(axis=1), exact.von_mises.mean(axis=1), rtol=2e-2)
