@@ -183,8 +183,8 @@ class SolverOptions:
             cylinder at 10 MPa and 100 kPa, tilted and curved first contacts) stayed within 0.99 times it,
             and so did stalls that are no force maximum (they stay NOT_CONVERGED). With R = 3 and 2 attempts
             the 10 ramps are flagged FORCE_MAXIMUM at the same load step, their failing steps cost 80-86
-            instead of 200-228 Newton iterations, 21 % fewer in all (6144 -> 4843; 921-vertex cube: 2
-            ramps, 15 %), every converging ramp unchanged; 1 attempt would save 28 %. The secant stiffness
+            instead of 200-228 Newton iterations, 22 % fewer in all (5920 -> 4619; 921-vertex cube: 2
+            ramps, 15 %), every converging ramp unchanged; 1 attempt would save 29 %. The secant stiffness
             itself does not announce the maximum (at the last converged step 0.47-1.0 times its largest
             value on the ramp): the cube gives way abruptly.
         force_maximum_attempts: runaway failed increments of one load step that flag FORCE_MAXIMUM (>= 1;

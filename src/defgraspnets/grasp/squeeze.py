@@ -196,8 +196,8 @@ def squeeze_solver_options(**overrides) -> fem.SolverOptions:
     of halving the increment until the step's 200 Newton iterations are spent (NOT_CONVERGED). On the
     268-vertex fTetWild cube (2-core CPU, "direct", grasps 0, 4, ..., 96 of 100, 0-15 N in 50 steps) the
     failing step cost 36 % of such a ramp's Newton iterations and time (the 921-vertex data-path cube:
-    24 %); 10 ramps at 10 kPa are flagged at the same step as before with 21 % fewer Newton iterations
-    (6144 -> 4843; 921 vertices: 15 %), and no converging ramp (153, at 10 kPa, 100 kPa and 10 MPa, and
+    24 %); 10 ramps at 10 kPa are flagged at the same step as before with 22 % fewer Newton iterations
+    (5920 -> 4619; 921 vertices: 15 %), and no converging ramp (153, at 10 kPa, 100 kPa and 10 MPa, and
     tilted or curved first contacts of a cone, a capsule and a cylinder) ever met the test: their failed
     increments stayed within 0.99 times the secant's prediction, the force maximum's ran 5-21 times past
     it (``SolverOptions.force_maximum_runaway``, ``benchmarks/squeeze_force_maximum_cpu.md``). Stalls that
