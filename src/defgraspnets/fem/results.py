@@ -21,6 +21,9 @@ class SolveStatus(IntEnum):
     NONFINITE = 3  # NaN or inf appeared
     # (4 is the grasp generator's STATUS_INVERTED)
     PINCHED = 5  # one vertex pressed from opposite sides by two bodies: a body passed between the vertices
+    # the controlled force passed a maximum of the equilibrium path: a force-controlled increment's travel
+    # ran away in repeated failed attempts (SolverOptions.force_maximum_runaway; else NOT_CONVERGED)
+    FORCE_MAXIMUM = 6
 
 
 @dataclass

@@ -19,7 +19,7 @@ For one object and K Young's moduli ``E_k``::
 
 Every ``(k, g)`` entry is written with status 0 only if its problem converged at *every* step (and, by
 default, has no inverted tet); otherwise its fields are NaN and its status is the first failure code
-(:class:`~defgraspnets.fem.SolveStatus` 1-3 and 5, or :data:`STATUS_INVERTED`). Failed entries are never
+(:class:`~defgraspnets.fem.SolveStatus` 1-3, 5 and 6, or :data:`STATUS_INVERTED`). Failed entries are never
 training data (thesis: unstable grasps are excluded from D).
 
 A shard is written through :class:`~defgraspnets.data.grasp_schema.GraspShardWriter`: a killed run leaves

@@ -220,6 +220,8 @@ def experiment_solver_options(**overrides) -> fem.SolverOptions:
         "max_newton_per_solve": 0,
         # the exact stick zone (the squeeze ramp's 5e-3 h stick zone was not measured on the experiments)
         "friction_stick_slip": 0.0,
+        # nor the squeeze ramp's early force-maximum flag (measured on squeeze ramps only)
+        "force_maximum_runaway": 0.0,
     }
     return squeeze_solver_options(**{**base, **overrides})
 
