@@ -64,7 +64,7 @@ def main(cfg: DictConfig) -> None:
             friction_stick_slip=cfg.friction_stick_slip,
             stabilization=cfg.stabilization,
             stabilization_release=cfg.stabilization_release,
-            force_maximum_runaway=cfg.get("force_maximum_runaway"),
+            force_maximum_runaway=cfg.force_maximum_runaway,
         ),
         reject_inverted=cfg.reject_inverted,
         overwrite=cfg.overwrite,
