@@ -385,7 +385,6 @@ def test_force_maximum_options_are_checked():
     assert fem.SolveStatus.FORCE_MAXIMUM == 6
 
 
-@pytest.mark.slow  # 66 s on the shared 2-core CPU (three runs of two grasps)
 def test_a_failed_release_is_relaxed_by_re_referenced_springs_and_converging_grasps_are_unchanged():
     """First force step (0.3 N) of the 268-vertex fTetWild cube at 10 MPa: grasp 4's stabilized increment
     converges but its released Newton solve stalls (the object must still settle into the grasp) and the

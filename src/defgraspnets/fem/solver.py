@@ -210,32 +210,33 @@ class SolverOptions:
             establish themselves (as a static FE code's contact stabilization, ramped off at the end of the
             step) and the answer is an exact equilibrium, ``stabilization_force`` 0.
         stabilization_relax: with ``stabilization_release``, the most re-referenced stabilized solves of one
-            load increment after its released solve failed (0, the default: none, the increment is bisected
-            at once). Where a stiff object must still roll or slide into the grasp (a pad's first contact
-            on a curved surface), the stabilized increment converges but the released Newton solve stalls on
-            the near-free rigid mode the springs held. With this option the problem goes back to the
-            stabilized solution and repeats the increment's stabilized solve, each time with the springs'
-            reference and the friction anchor (reference positions, stick stretches, body placements)
-            moved to the last converged stabilized solution, as a commit would move them (a proximal-point
-            iteration; the increment's start is kept as the restore point and the predictor's origin),
-            until the springs' largest force ``max_i c_i |u_i - u_spring_i|`` is no more than the Newton
-            tolerance; then the springs are released again (an exact equilibrium is still required). It
-            gives up (the increment is restored and bisected as before) after this many solves, when one
-            fails, or when the problem has spent ``RELAX_BUDGET_SHARE`` (1) of its Newton budget
-            (``max_newton_per_solve``): the relax solves count towards it. Problems whose release converges
-            are untouched, bit for bit. Measured (session 38, 2-core CPU, "direct", squeeze defaults,
-            ``benchmarks/squeeze_relax_cpu.md``): the first force step (0.3 N) of the 997-vertex fTetWild
-            torus at 10 MPa, grasps 20-59: 5 of the 16 that fail converge with 40 and the 200-iteration
-            budget (134-149 Newton iterations); grasps 6 and 7 need 46 and 60 solves, 599 and 1150 Newton
-            iterations (budget 2000) and end ~0.9 mm further on, where the proximal steps shrink x0.9 per
-            solve; grasps 17 and 18 creep (springs' force flat at ~2e-5 N over 389 solves) and still fail.
-            With the springs re-referenced but the friction anchor kept at the increment's start, grasp 6
-            slid at a constant springs' force and its 8th solve failed. On squeeze ramps of the 268-vertex
-            cube (25 grasps, 0-15 N in 50 steps) every ramp without a failed release is bit-identical at
-            10 kPa (25 of 25) and 10 MPa (21 of 25); at 10 MPa grasp 4 converges (it failed its first step),
-            two converge either way with fewer iterations (on another path), and grasp 96, which plain
-            bisection saves after a failed release, spends its budget in the loop and fails
-            (``RELAX_BUDGET_SHARE`` 0.5 saves 96 and loses 4; 0.75 the reverse).
+            load increment after its released solve failed (0, the default: none, the increment is bisected at
+            once). Where a stiff object must still roll or slide into the grasp (a pad's first contact on a
+            curved surface), the stabilized increment converges but the released Newton solve stalls on the
+            near-free rigid mode the springs held. With this option the problem goes back to the stabilized
+            solution and repeats the increment's stabilized solve, each time with the springs' reference and
+            the friction anchor (reference positions, stick stretches, body placements) moved to the last
+            converged stabilized solution, as a commit would move them (a proximal-point iteration; the
+            increment's start is kept as the restore point and the predictor's origin), until the springs'
+            largest force ``max_i c_i |u_i - u_spring_i|`` is no more than the Newton tolerance; then the
+            springs are released again (an exact equilibrium is still required). It gives up (the increment is
+            restored and bisected as before) after this many solves, when one fails, or when the problem has
+            spent ``RELAX_BUDGET_SHARE`` (1) of its Newton budget (``max_newton_per_solve``): the relax solves
+            count towards it. Problems whose release converges are untouched, bit for bit. Measured (session
+            38, 2-core CPU, "direct", squeeze defaults, ``benchmarks/squeeze_relax_cpu.md``): the first force
+            step (0.3 N) of the 997-vertex fTetWild torus at 10 MPa, grasps 20-59: 5 of the 16 that fail
+            converge with 40 and the 200-iteration budget (134-149 Newton iterations; 29 instead of 24 of 40,
+            4406 instead of 5034 Newton iterations in all), 22 of the 24 others bit-identical (two saved by
+            bisection before converge on another path, turned about the grasp axis); grasps 6 and 7 need 46
+            and 60 solves, 599 and 1150 Newton iterations (budget 2000) and end ~0.9 mm further on, where the
+            proximal steps shrink x0.9 per solve; grasps 17 and 18 creep (springs' force flat at ~2e-5 N over
+            389 solves) and still fail. With the springs re-referenced but the friction anchor kept at the
+            increment's start, grasp 6 slid at a constant springs' force and its 8th solve failed. On squeeze
+            ramps of the 268-vertex cube (25 grasps, 0-15 N in 50 steps) every ramp without a failed release
+            is bit-identical at 10 kPa and 100 kPa (25 of 25: none relaxes) and 10 MPa (21 of 25); at 10 MPa
+            grasp 4 converges (it failed its first step), two converge either way with fewer iterations (on
+            another path), and grasp 96, which plain bisection saves after a failed release, spends its budget
+            in the loop and fails (``RELAX_BUDGET_SHARE`` 0.5 saves 96 and loses 4; 0.75 the reverse).
         exact_hessian: once a problem's Newton step is accepted in full and lowers the residual, its next
             iterations use the exact elastic Hessian (signed element eigenvalues) instead of the PSD-projected
             one: near a stable equilibrium the assembled Hessian is positive definite even where compressed
@@ -2346,6 +2347,7 @@ class QuasiStaticSolver:
         first = mask & ~path.anchored
         if first.any():
             self._copy_rows(self._q_ref, self._q_start, self._active_array(first))
+        if first.any() and self.num_bodies:
             rows = np.flatnonzero(first)
             stick = self._host_rows(self._stick_stretch, self.num_surface * self.num_bodies, rows)
             self._stick_start.update(zip(rows.tolist(), stick))
@@ -2368,9 +2370,10 @@ class QuasiStaticSolver:
         (their failed increment is then restored to it); body reference placements follow the restore."""
         self._copy_rows(self._q_start, self._q_ref, self._active_array(mask))
         self._unpack(self._q_ref, self._positions_ref, self._travel_ref)
-        rows = np.flatnonzero(mask)
-        stick = np.stack([self._stick_start.pop(b) for b in rows.tolist()])
-        self._put_rows(self._stick_stretch, self.num_surface * self.num_bodies, rows, stick)
+        if self.num_bodies:
+            rows = np.flatnonzero(mask)
+            stick = np.stack([self._stick_start.pop(b) for b in rows.tolist()])
+            self._put_rows(self._stick_stretch, self.num_surface * self.num_bodies, rows, stick)
 
     def _begin_increments(self, path: _LoadPath, run: _NewtonRun, mask: np.ndarray) -> None:
         """Start the next load increment (``path.lam_done`` -> ``path.lam_try``) of the masked problems."""
