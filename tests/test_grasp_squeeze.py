@@ -383,3 +383,56 @@ def test_force_maximum_options_are_checked():
         fem.SolverOptions(force_maximum_attempts=0)
     assert fem.SolverOptions().force_maximum_runaway == 0.0  # off in the engine
     assert fem.SolveStatus.FORCE_MAXIMUM == 6
+
+
+def test_a_failed_release_is_relaxed_by_re_referenced_springs_and_converging_grasps_are_unchanged():
+    """First force step (0.3 N) of the 268-vertex fTetWild cube at 10 MPa: grasp 4's stabilized increment
+    converges but its released Newton solve stalls (the object must still settle into the grasp) and the
+    halved increments spend the 200-iteration budget (NOT_CONVERGED). With ``stabilization_relax`` the
+    failed release goes back to the stabilized solution and repeats the stabilized solve with the springs
+    (and the friction anchor) moved to the last solution until the springs hold no more than the Newton
+    tolerance: released again, it converges to an exact equilibrium (the pads press with F / 2 each,
+    Coulomb holds, no spring force). Grasp 0, whose release converges, is the same bit for bit, and the
+    lockstep path (``barrier``) gives grasp 4 the same equilibrium as the streamed one."""
+    from pathlib import Path
+
+    mesh = fem.TetMesh.load(Path(__file__).parent / "data" / "cuboid_30x30x30_ftetwild.vtu")
+    grasps = sample_antipodal_grasps(mesh, num_grasps=100, friction_coefficient=0.7, seed=0)[[4, 0]]
+    mu, force = 0.7, 0.3
+    material = fem.Material(1e7, 0.3, 1000.0, model="neohookean")
+
+    def first_step(relax, barrier=False):
+        options = squeeze_solver_options(linear_solver="direct", stabilization_relax=relax)
+        solver = make_squeeze_solver(mesh, grasps, material, mu, device="cpu", options=options)
+        return squeeze_ramp(solver, force, 1, barrier=barrier)[-1]
+
+    assert squeeze_solver_options().stabilization_relax == 0  # not (yet) on the squeeze path
+    plain = first_step(0)
+    assert plain.status.tolist() == [fem.SolveStatus.NOT_CONVERGED, fem.SolveStatus.CONVERGED]
+    eq = first_step(40)
+    eq.require_converged()
+    assert eq.newton_iterations[0] <= 200  # within the squeeze path's budget (measured 180)
+    np.testing.assert_allclose(eq.dof_force["grip"], force, rtol=1e-4)
+    left, right = (eq.body_force[name] for name in FINGER_NAMES)
+    np.testing.assert_allclose(left + right, 0.0, atol=1e-5)  # zero gravity: the pads' forces balance
+    np.testing.assert_array_equal(eq.stabilization_force, 0.0)  # released: an exact equilibrium
+    for name in FINGER_NAMES:
+        normal = eq.contact_normal_force[name]
+        tangential = np.linalg.norm(eq.contact_friction_force[name], axis=-1)
+        assert np.all(tangential <= mu * normal * (1 + 1e-9) + 1e-12)
+        assert np.all(normal.sum(axis=1) > 0)
+    assert eq.newton_iterations[1] == plain.newton_iterations[1]
+    np.testing.assert_array_equal(eq.displacement[1], plain.displacement[1])
+    np.testing.assert_array_equal(eq.travel["grip"][1], plain.travel["grip"][1])
+    np.testing.assert_array_equal(eq.von_mises[1], plain.von_mises[1])
+    lockstep = first_step(40, barrier=True)
+    lockstep.require_converged()
+    np.testing.assert_array_equal(lockstep.displacement, eq.displacement)
+    np.testing.assert_array_equal(lockstep.newton_iterations, eq.newton_iterations)
+
+
+def test_stabilization_relax_is_checked():
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="stabilization_relax"):
+            fem.SolverOptions(stabilization_relax=bad)
+    assert fem.SolverOptions().stabilization_relax == 0  # off in the engine

@@ -78,6 +78,11 @@ MAX_FACTOR_REUSE_DEFAULT = {False: 4, True: 0}
 LINE_SEARCH_TRIALS_DEFAULT = {False: 1, True: 8}
 
 
+#: share of a problem's Newton budget (``max_newton_per_solve``) after which the proximal loop of
+#: ``stabilization_relax`` gives up (the rest is left to the bisection of the failed increment)
+RELAX_BUDGET_SHARE = 1.0
+
+
 def _check_optional_int(name: str, value, minimum: int) -> None:
     """A SolverOptions field that is None (the default) or an integer (not a bool) >= ``minimum``."""
     if value is not None and (
@@ -204,6 +209,34 @@ class SolverOptions:
             (else it is bisected like any failed increment): the springs guide the path while the contacts
             establish themselves (as a static FE code's contact stabilization, ramped off at the end of the
             step) and the answer is an exact equilibrium, ``stabilization_force`` 0.
+        stabilization_relax: with ``stabilization_release``, the most re-referenced stabilized solves of one
+            load increment after its released solve failed (0, the default: none, the increment is bisected at
+            once). Where a stiff object must still roll or slide into the grasp (a pad's first contact on a
+            curved surface), the stabilized increment converges but the released Newton solve stalls on the
+            near-free rigid mode the springs held. With this option the problem goes back to the stabilized
+            solution and repeats the increment's stabilized solve, each time with the springs' reference and
+            the friction anchor (reference positions, stick stretches, body placements) moved to the last
+            converged stabilized solution, as a commit would move them (a proximal-point iteration; the
+            increment's start is kept as the restore point and the predictor's origin), until the springs'
+            largest force ``max_i c_i |u_i - u_spring_i|`` is no more than the Newton tolerance; then the
+            springs are released again (an exact equilibrium is still required). It gives up (the increment is
+            restored and bisected as before) after this many solves, when one fails, or when the problem has
+            spent ``RELAX_BUDGET_SHARE`` (1) of its Newton budget (``max_newton_per_solve``): the relax solves
+            count towards it. Problems whose release converges are untouched, bit for bit. Measured (session
+            38, 2-core CPU, "direct", squeeze defaults, ``benchmarks/squeeze_relax_cpu.md``): the first force
+            step (0.3 N) of the 997-vertex fTetWild torus at 10 MPa, grasps 20-59: 5 of the 16 that fail
+            converge with 40 and the 200-iteration budget (134-149 Newton iterations; 29 instead of 24 of 40,
+            4406 instead of 5034 Newton iterations in all), 22 of the 24 others bit-identical (two saved by
+            bisection before converge on another path, turned about the grasp axis); grasps 6 and 7 need 46
+            and 60 solves, 599 and 1150 Newton iterations (budget 2000) and end ~0.9 mm further on, where the
+            proximal steps shrink x0.9 per solve; grasps 17 and 18 creep (springs' force flat at ~2e-5 N over
+            389 solves) and still fail. With the springs re-referenced but the friction anchor kept at the
+            increment's start, grasp 6 slid at a constant springs' force and its 8th solve failed. On squeeze
+            ramps of the 268-vertex cube (25 grasps, 0-15 N in 50 steps) every ramp without a failed release
+            is bit-identical at 10 kPa and 100 kPa (25 of 25: none relaxes) and 10 MPa (21 of 25); at 10 MPa
+            grasp 4 converges (it failed its first step), two converge either way with fewer iterations (on
+            another path), and grasp 96, which plain bisection saves after a failed release, spends its budget
+            in the loop and fails (``RELAX_BUDGET_SHARE`` 0.5 saves 96 and loses 4; 0.75 the reverse).
         exact_hessian: once a problem's Newton step is accepted in full and lowers the residual, its next
             iterations use the exact elastic Hessian (signed element eigenvalues) instead of the PSD-projected
             one: near a stable equilibrium the assembled Hessian is positive definite even where compressed
@@ -289,6 +322,7 @@ class SolverOptions:
     regularization: float = 1e-10
     stabilization: float = 0.0
     stabilization_release: bool = False
+    stabilization_relax: int = 0
     exact_hessian: bool = True
     max_factor_reuse: int | None = None
     factor_reuse_contraction: float = 0.25
@@ -312,6 +346,9 @@ class SolverOptions:
             raise ValueError(
                 "SolverOptions.stabilization_release needs stabilization > 0 (no springs to release)"
             )
+        relax = self.stabilization_relax
+        if isinstance(relax, bool) or not (isinstance(relax, (int, np.integer)) and relax >= 0):
+            raise ValueError(f"SolverOptions.stabilization_relax must be an int >= 0, got {relax!r}")
         if not (np.isfinite(self.force_maximum_runaway) and self.force_maximum_runaway >= 0):
             raise ValueError(
                 f"SolverOptions.force_maximum_runaway must be >= 0, got {self.force_maximum_runaway!r}"
@@ -474,6 +511,9 @@ class _LoadPath:
     releasing: np.ndarray  # (B,) bool: Newton runs without the stabilization springs (stabilization_release)
     held_newton: np.ndarray  # (B,) iterations of the stabilized Newton solve before the release
     held_linear: np.ndarray
+    relaxes: np.ndarray  # (B,) re-referenced stabilized solves of this increment (stabilization_relax)
+    relaxing: np.ndarray  # (B,) bool: Newton runs such a solve
+    anchored: np.ndarray  # (B,) bool: its reference (friction anchor) moved; the increment's start is kept
 
     @classmethod
     def between(cls, start: dict, end: dict) -> _LoadPath:
@@ -495,6 +535,9 @@ class _LoadPath:
             releasing=np.zeros(B, dtype=bool),
             held_newton=np.zeros(B, dtype=int),
             held_linear=np.zeros(B, dtype=int),
+            relaxes=np.zeros(B, dtype=int),
+            relaxing=np.zeros(B, dtype=bool),
+            anchored=np.zeros(B, dtype=bool),
         )
 
     def begin(self, mask: np.ndarray, initial_fraction: float) -> None:
@@ -503,10 +546,12 @@ class _LoadPath:
         self.lam_done[mask] = 0.0
         self.lam_try[mask] = float(np.clip(initial_fraction, 1e-6, 1.0))
         counts = (self.bisections, self.runaways, self.newton_total, self.linear_total)
-        for a in (*counts, self.held_newton, self.held_linear):
+        for a in (*counts, self.held_newton, self.held_linear, self.relaxes):
             a[mask] = 0
         self.relag_every[mask] = False
         self.releasing[mask] = False
+        self.relaxing[mask] = False
+        self.anchored[mask] = False
         self.residual[mask] = 0.0
 
 
@@ -524,6 +569,7 @@ class _NewtonRun:
     iters: np.ndarray  # (B,) Newton iterations
     lin_iters: np.ndarray  # (B,) Krylov iterations
     residual: np.ndarray  # (B,) last residual [N]
+    tol: np.ndarray  # (B,) Newton tolerance at the last residual [N]
     relag: np.ndarray  # (B,) bool: re-lag the friction normal forces at the next pass
     relags: np.ndarray  # (B,) re-lags of converged but inconsistent states
     last_relag: np.ndarray  # (B,) iteration of the last such re-lag
@@ -550,6 +596,7 @@ class _NewtonRun:
             iters=np.zeros(B, dtype=int),
             lin_iters=np.zeros(B, dtype=int),
             residual=np.full(B, np.inf),
+            tol=np.zeros(B),
             relag=np.zeros(B, dtype=bool),
             relags=np.zeros(B, dtype=int),
             last_relag=np.zeros(B, dtype=int),
@@ -796,6 +843,12 @@ class QuasiStaticSolver:
         # ---------------- per-problem state (q packs u and the travels, B * R rows)
         self._q = wp.zeros(B * R, dtype=wp.vec3d, device=dev)
         self._q_ref = wp.zeros_like(self._q)
+        # the stabilization springs' reference: _q_ref itself, or (stabilization_relax) a copy of it that the
+        # re-referenced stabilized solves of a failed release move
+        relax = self.options.stabilization_release and self.options.stabilization_relax > 0
+        self._q_spring = wp.zeros_like(self._q) if relax else self._q_ref
+        self._q_start = wp.zeros_like(self._q) if relax else None  # an anchored increment's start
+        self._stick_start: dict[int, np.ndarray] = {}  # and its stick stretches, per problem
         # line-search trial states: T per problem, trial-major (state t B + b is trial t of problem b)
         self._q_trial = wp.zeros(T * B * R, dtype=wp.vec3d, device=dev)
         self._trial_step = wp.zeros(T * B, dtype=wp.float64, device=dev)
@@ -1060,6 +1113,7 @@ class QuasiStaticSolver:
         """Back to the rest state: zero displacement and travel, no loads, statuses cleared."""
         self._q.zero_()
         self._q_ref.zero_()
+        self._q_spring.zero_()
         self._last_increment.zero_()
         self._last_change = np.zeros((self.batch_size, 0))
         self._lag_force.zero_()
@@ -1153,6 +1207,8 @@ class QuasiStaticSolver:
             "_volume_gradient",
             "_diag_shift",
         ]
+        if self._q_spring is not self._q_ref:
+            per_row.append("_q_spring")
         for name in per_row:
             gather(getattr(self, name), getattr(other, name), R)
         for name in ("_positions", "_positions_ref", "_positions_trial", "_nodal_force", "_stabilization"):
@@ -1336,7 +1392,7 @@ class QuasiStaticSolver:
             wp.launch(
                 kk.stabilization_energy_kernel,
                 dim=(TB, N),
-                inputs=[q, self._q_ref, self._stabilization, N, self.rows_per_problem, active, e],
+                inputs=[q, self._q_spring, self._stabilization, N, self.rows_per_problem, active, e],
                 device=self.device,
             )
         energy = e.numpy()[:TB].reshape(trials, B).copy()
@@ -1526,7 +1582,7 @@ class QuasiStaticSolver:
                 dim=(B, N),
                 inputs=[
                     self._q,
-                    self._q_ref,
+                    self._q_spring,
                     self._stabilization,
                     N,
                     self.rows_per_problem,
@@ -2178,7 +2234,9 @@ class QuasiStaticSolver:
             escape=o.escape_fraction * self.mesh.diameter,
         )
         release = o.stabilization > 0 and o.stabilization_release
+        relax = release and o.stabilization_relax > 0
         springs = np.ones(self.batch_size, dtype=bool)  # increment stabilization springs on, per problem
+        waiting = np.zeros(self.batch_size, dtype=bool)
         self._begin_increments(path, run, path.todo)
         while run.working.any():
             self._newton_pass(run)
@@ -2191,24 +2249,32 @@ class QuasiStaticSolver:
             if release:
                 # an increment that converged stabilized continues without the springs, from that state;
                 # only an exact equilibrium is accepted
-                freed = done & run.ok & ~path.releasing
-                back = done & path.releasing
-                if freed.any() or back.any():
-                    path.held_newton[freed] = run.iters[freed]
-                    path.held_linear[freed] = run.lin_iters[freed]
+                fresh = done & ~waiting  # (settled problems that wait for others at the barrier: not again)
+                back = fresh & path.releasing
+                freed, again = self._relax(path, run, fresh) if relax else (fresh & run.ok & ~back, None)
+                moved = freed if again is None else freed | again
+                if moved.any() or back.any():
+                    path.held_newton[moved] += run.iters[moved]
+                    path.held_linear[moved] += run.lin_iters[moved]
                     path.releasing[freed] = True
                     path.releasing[back] = False
                     springs[freed] = False
                     springs[back] = True
-                    self.system.forget_factors(freed | back)  # factored with (without) the springs' diagonal
-                    self._newton_begin(run, freed)
-                    self._stabilize(springs)
+                    if again is not None:
+                        springs[again] = True
+                        self._copy_rows(self._q, self._q_spring, self._active_array(freed))
+                    self.system.forget_factors(freed | back)  # made with (without) the springs' diagonal
+                    self._newton_begin(run, moved)
+                    if freed.any() or back.any():
+                        self._stabilize(springs)
                     if np.any(run.damping):
                         self._set_damping_shift(run.damping)
-                    done &= ~freed
-                    if barrier and freed.any():
+                    done &= ~moved
+                    if barrier and moved.any():
+                        waiting |= done
                         run.started |= done  # the others wait for the released ones, as in lockstep
                         continue
+            waiting[:] = False
             if not done.any():
                 continue
             left = self._finish_increments(path, run, done)
@@ -2219,6 +2285,95 @@ class QuasiStaticSolver:
                 self._begin_increments(path, run, again)
         self._exact_hessian.zero_()
         self._set_damping_shift(np.zeros(self.batch_size))
+
+    def _relax(self, path: _LoadPath, run: _NewtonRun, done: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The proximal loop of ``stabilization_relax`` for the problems whose Newton solves ended (``done``).
+
+        Returns ``freed`` (a stabilized solve converged: released next, from its state, which the springs'
+        reference ``_q_spring`` keeps) and ``again`` (a re-referenced stabilized solve runs next: after a
+        failed release from the kept stabilized solution, after a converged one from its own state, with
+        the springs' reference moved there). A proximal solve that failed, or converged with springs still
+        pulling harder than the Newton tolerance after the last allowed one, ends the increment as failed
+        (``run.ok`` cleared); the caller bisects it as any."""
+        o = self.options
+        back = done & path.releasing
+        proximal = done & path.relaxing
+        relaxed = np.zeros_like(done)
+        if (proximal & run.ok).any():
+            # the springs' largest force at the converged state: no more than the Newton tolerance?
+            B, N, R = self.batch_size, self.mesh.num_vertices, self.rows_per_problem
+            rows = np.flatnonzero(proximal & run.ok)
+            q = self._q.numpy().reshape(B, R, 3)[rows, :N]
+            q_spring = self._q_spring.numpy().reshape(B, R, 3)[rows, :N]
+            spring = np.max(self._stabilization_np[rows] * np.linalg.norm(q - q_spring, axis=2), axis=1)
+            relaxed[rows] = spring <= run.tol[rows]
+            log.debug("stabilization relax: springs' force %s, tolerance %s", spring[:4], run.tol[rows][:4])
+        freed = (done & run.ok & ~back & ~proximal) | relaxed
+        budget = path.relaxes < o.stabilization_relax
+        if o.max_newton_per_solve:
+            spent = path.newton_total + path.held_newton + run.iters
+            budget &= spent < RELAX_BUDGET_SHARE * o.max_newton_per_solve
+        retry = back & ~run.ok & budget  # the release failed: back to the stabilized solution
+        failed = proximal & ~run.ok
+        more = proximal & run.ok & ~relaxed & budget
+        giveup = proximal & run.ok & ~relaxed & ~budget
+        run.ok[giveup] = False
+        run.status[giveup] = SolveStatus.NOT_CONVERGED
+        if retry.any():
+            self._copy_rows(self._q_spring, self._q, self._active_array(retry))
+            self._unpack(self._q, self._positions, self._travel)
+        if more.any():
+            self._anchor(path, more)
+        again = retry | more
+        path.relaxes[again] += 1
+        path.relaxing[proximal] = False
+        path.relaxing[again] = True
+        if again.any() or failed.any() or giveup.any():
+            log.debug(
+                "stabilization relax: again %s (solves %s), released %s, failed %s (status %s), given up %s",
+                np.flatnonzero(again)[:8],
+                path.relaxes[again][:8],
+                np.flatnonzero(relaxed)[:8],
+                np.flatnonzero(failed)[:8],
+                run.status[failed][:8],
+                np.flatnonzero(giveup)[:8],
+            )
+        return freed, again
+
+    def _anchor(self, path: _LoadPath, mask: np.ndarray) -> None:
+        """The masked problems' converged stabilized states become their springs' reference and their
+        friction anchor (reference positions, stick stretches, body reference placements), as a commit
+        would make them, the increment's start kept for :meth:`_unanchor` (restore point, predictor)."""
+        first = mask & ~path.anchored
+        if first.any():
+            self._copy_rows(self._q_ref, self._q_start, self._active_array(first))
+        if first.any() and self.num_bodies:
+            rows = np.flatnonzero(first)
+            stick = self._host_rows(self._stick_stretch, self.num_surface * self.num_bodies, rows)
+            self._stick_start.update(zip(rows.tolist(), stick))
+        path.anchored |= mask
+        m = self._active_array(mask)
+        if self.num_bodies:
+            wp.launch(
+                ck.commit_stick_stretch_kernel,
+                dim=(self.batch_size, self.num_surface, self.num_bodies),
+                inputs=[*self._contact_inputs(self._positions, self._travel), m],
+                device=self.device,
+            )
+        self._copy_rows(self._q, self._q_ref, m)
+        self._copy_rows(self._q, self._q_spring, m)
+        self._unpack(self._q_ref, self._positions_ref, self._travel_ref)
+        self._commit_body_reference(mask)
+
+    def _unanchor(self, mask: np.ndarray) -> None:
+        """The masked (anchored) problems' reference and stick stretches back at their increment's start
+        (their failed increment is then restored to it); body reference placements follow the restore."""
+        self._copy_rows(self._q_start, self._q_ref, self._active_array(mask))
+        self._unpack(self._q_ref, self._positions_ref, self._travel_ref)
+        if self.num_bodies:
+            rows = np.flatnonzero(mask)
+            stick = np.stack([self._stick_start.pop(b) for b in rows.tolist()])
+            self._put_rows(self._stick_stretch, self.num_surface * self.num_bodies, rows, stick)
 
     def _begin_increments(self, path: _LoadPath, run: _NewtonRun, mask: np.ndarray) -> None:
         """Start the next load increment (``path.lam_done`` -> ``path.lam_try``) of the masked problems."""
@@ -2239,6 +2394,8 @@ class QuasiStaticSolver:
         path.linear_total[done] += run.lin_iters[done] + path.held_linear[done]
         path.held_newton[done] = 0
         path.held_linear[done] = 0
+        path.relaxes[done] = 0
+        path.relaxing[done] = False
         path.residual[done] = run.residual[done]
         # an equilibrium in which a body pressed through the object between its vertices is no answer:
         # retried with smaller increments like a failed one, flagged PINCHED if it persists
@@ -2247,9 +2404,27 @@ class QuasiStaticSolver:
         good = ok & ~pinched
         bad = done & ~good
         left = np.zeros(self.batch_size, dtype=bool)
+        anchored = done & path.anchored
+        path.anchored[done] = False
         if good.any():
             step = path.lam_try - path.lam_done
             self._commit(good, path.change * step[:, None])
+            if (good & anchored).any():
+                # the predictor's increment runs from the increment's start, not from the moved anchor
+                wp.launch(
+                    kk.masked_difference_kernel,
+                    dim=(self.batch_size, self.rows_per_problem),
+                    inputs=[
+                        self._q,
+                        self._q_start,
+                        self._active_array(good & anchored),
+                        self.rows_per_problem,
+                        self._last_increment,
+                    ],
+                    device=self.device,
+                )
+                for b in np.flatnonzero(good & anchored).tolist():
+                    self._stick_start.pop(b, None)
             path.lam_done[good] = path.lam_try[good]
             finished = good & (path.lam_done >= 1.0)
             path.todo &= ~finished
@@ -2257,12 +2432,16 @@ class QuasiStaticSolver:
             grow = good & ~finished
             path.lam_try[grow] = np.minimum(1.0, path.lam_done[grow] + 2.0 * step[grow])
         if bad.any():
+            if (bad & anchored).any():
+                self._unanchor(bad & anchored)
             if o.force_maximum_runaway > 0:
                 # (the failed attempts' travels, before they are restored)
                 stalled = bad & (fail_status == SolveStatus.NOT_CONVERGED)
                 path.runaways[self._force_runaway(path, stalled)] += 1
                 fail_status[stalled & (path.runaways >= o.force_maximum_attempts)] = SolveStatus.FORCE_MAXIMUM
             self._restore(bad)
+            if (bad & anchored).any():
+                self._commit_body_reference(bad & anchored)  # (placed by the restored travels)
             self.system.forget_factors(bad)  # made at states of the failed increment
             path.bisections[bad] += 1
             tiny = (path.lam_try - path.lam_done) < 2.0**-o.max_load_bisections
@@ -2411,6 +2590,7 @@ class QuasiStaticSolver:
         run.residual[working] = res[working]
         scale = np.maximum(np.maximum(fscale, lscale), run.dof_targets.max(axis=1, initial=0.0))
         tol = o.rtol * scale + self._newton_atol
+        run.tol[working] = tol[working]
         nonfinite = working & ~np.isfinite(res)
         if nonfinite.any():
             run.status[nonfinite] = SolveStatus.NONFINITE
@@ -2717,24 +2897,27 @@ class QuasiStaticSolver:
                 ],
                 device=self.device,
             )
-        wp.launch(
-            kk.copy_problems_kernel,
-            dim=(self.batch_size, self.rows_per_problem),
-            inputs=[self._q, m, self.rows_per_problem, self._q_ref],
-            device=self.device,
-        )
+        self._copy_rows(self._q, self._q_ref, m)
+        if self._q_spring is not self._q_ref:
+            self._copy_rows(self._q, self._q_spring, m)
         self._unpack(self._q_ref, self._positions_ref, self._travel_ref)
         self._commit_body_reference(mask)
 
     def _restore(self, mask: np.ndarray):
         m = self._active_array(mask)
+        self._copy_rows(self._q_ref, self._q, m)
+        if self._q_spring is not self._q_ref:
+            self._copy_rows(self._q_ref, self._q_spring, m)
+        self._unpack(self._q, self._positions, self._travel)
+
+    def _copy_rows(self, src: wp.array, dst: wp.array, active: wp.array) -> None:
+        """dst <- src for the problems flagged in ``active`` (an ``_active_array``), B x R vec3d arrays."""
         wp.launch(
             kk.copy_problems_kernel,
             dim=(self.batch_size, self.rows_per_problem),
-            inputs=[self._q_ref, m, self.rows_per_problem, self._q],
+            inputs=[src, active, self.rows_per_problem, dst],
             device=self.device,
         )
-        self._unpack(self._q, self._positions, self._travel)
 
     # ------------------------------------------------------------------ outputs
     def _results(self, load_fraction, newton, linear, residual, rows=None) -> Equilibrium:
