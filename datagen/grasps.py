@@ -65,6 +65,7 @@ def main(cfg: DictConfig) -> None:
             stabilization=cfg.stabilization,
             stabilization_release=cfg.stabilization_release,
             force_maximum_runaway=cfg.force_maximum_runaway,
+            stabilization_relax=cfg.stabilization_relax,
         ),
         reject_inverted=cfg.reject_inverted,
         overwrite=cfg.overwrite,
