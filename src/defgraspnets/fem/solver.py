@@ -2301,10 +2301,10 @@ class QuasiStaticSolver:
         relaxed = np.zeros_like(done)
         if (proximal & run.ok).any():
             # the springs' largest force at the converged state: no more than the Newton tolerance?
-            B, N, R = self.batch_size, self.mesh.num_vertices, self.rows_per_problem
+            N, R = self.mesh.num_vertices, self.rows_per_problem
             rows = np.flatnonzero(proximal & run.ok)
-            q = self._q.numpy().reshape(B, R, 3)[rows, :N]
-            q_spring = self._q_spring.numpy().reshape(B, R, 3)[rows, :N]
+            q = self._host_rows(self._q, R, rows)[:, :N]
+            q_spring = self._host_rows(self._q_spring, R, rows)[:, :N]
             spring = np.max(self._stabilization_np[rows] * np.linalg.norm(q - q_spring, axis=2), axis=1)
             relaxed[rows] = spring <= run.tol[rows]
             log.debug("stabilization relax: springs' force %s, tolerance %s", spring[:4], run.tol[rows][:4])
@@ -2411,17 +2411,8 @@ class QuasiStaticSolver:
             self._commit(good, path.change * step[:, None])
             if (good & anchored).any():
                 # the predictor's increment runs from the increment's start, not from the moved anchor
-                wp.launch(
-                    kk.masked_difference_kernel,
-                    dim=(self.batch_size, self.rows_per_problem),
-                    inputs=[
-                        self._q,
-                        self._q_start,
-                        self._active_array(good & anchored),
-                        self.rows_per_problem,
-                        self._last_increment,
-                    ],
-                    device=self.device,
+                self._difference_rows(
+                    self._q, self._q_start, self._active_array(good & anchored), self._last_increment
                 )
                 for b in np.flatnonzero(good & anchored).tolist():
                     self._stick_start.pop(b, None)
@@ -2491,17 +2482,18 @@ class QuasiStaticSolver:
         force = np.array([mode == "force" for mode in self.dof_mode], dtype=bool)
         if not (mask.any() and force.any()) or self._last_change.shape[1] < D:
             return out
-        travel = self._travel.numpy()[: B * D].reshape(B, D)
-        travel_ref = self._travel_ref.numpy()[: B * D].reshape(B, D)
-        moved = travel - travel_ref  # the failed attempt's travel
-        load = path.change[:, :D] * (path.lam_try - path.lam_done)[:, None]  # its force change
-        last_load = self._last_change[:, :D]  # the last converged increment's force change ...
-        last_moved = self._last_increment.numpy().reshape(B, self.rows_per_problem, 3)[:, N : N + D, 0]
+        rows = np.flatnonzero(mask)
+        # the failed attempt's travel
+        moved = self._host_rows(self._travel, D, rows) - self._host_rows(self._travel_ref, D, rows)
+        load = path.change[rows, :D] * (path.lam_try - path.lam_done)[rows, None]  # its force change
+        last_load = self._last_change[rows, :D]  # the last converged increment's force change ...
+        last_moved = self._host_rows(self._last_increment, self.rows_per_problem, rows)[:, N : N + D, 0]
         with np.errstate(divide="ignore", invalid="ignore"):
             # ... and travel: the travel the secant predicts for this attempt is load * last_moved / last_load
             judged = force[None] & (load * last_load > 0) & (last_moved * last_load > 0)
             ratio = np.where(judged, moved * last_load / (load * last_moved), 0.0)
-        return mask & np.any(ratio > self.options.force_maximum_runaway, axis=1)
+        out[rows] = np.any(ratio > self.options.force_maximum_runaway, axis=1)
+        return out
 
     # ------------------------------------------------------------------ Newton
     def _stabilize(self, on: np.ndarray) -> None:
@@ -2878,12 +2870,7 @@ class QuasiStaticSolver:
     def _commit(self, mask: np.ndarray, change: np.ndarray):
         """Accept the masked problems' states as converged: friction memory, predictor data, reference."""
         m = self._active_array(mask)
-        wp.launch(
-            kk.masked_difference_kernel,
-            dim=(self.batch_size, self.rows_per_problem),
-            inputs=[self._q, self._q_ref, m, self.rows_per_problem, self._last_increment],
-            device=self.device,
-        )
+        self._difference_rows(self._q, self._q_ref, m, self._last_increment)
         if self._last_change.shape != change.shape:
             self._last_change = np.zeros_like(change)
         self._last_change[mask] = change[mask]
@@ -2909,6 +2896,15 @@ class QuasiStaticSolver:
         if self._q_spring is not self._q_ref:
             self._copy_rows(self._q_ref, self._q_spring, m)
         self._unpack(self._q, self._positions, self._travel)
+
+    def _difference_rows(self, a: wp.array, b: wp.array, active: wp.array, out: wp.array) -> None:
+        """out <- a - b for the problems flagged in ``active`` (an ``_active_array``), B x R vec3d arrays."""
+        wp.launch(
+            kk.masked_difference_kernel,
+            dim=(self.batch_size, self.rows_per_problem),
+            inputs=[a, b, active, self.rows_per_problem, out],
+            device=self.device,
+        )
 
     def _copy_rows(self, src: wp.array, dst: wp.array, active: wp.array) -> None:
         """dst <- src for the problems flagged in ``active`` (an ``_active_array``), B x R vec3d arrays."""
