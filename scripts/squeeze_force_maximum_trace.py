@@ -1,21 +1,19 @@
 """Per-increment trace of squeeze ramps (benchmarks/squeeze_force_maximum_cpu.md): one grasp per solver,
-0-15 N in STEPS (default 50) steps, every load increment's Newton iterations, wall time, target force and
-the grip's travel at the end of the attempt (converged or not), written as JSON.
+0-15 N in ``steps`` steps, every load increment's Newton iterations, wall time, target force and the grip's
+travel at the end of the attempt (converged or not), written as JSON.
 
-    python scripts/squeeze_force_maximum_trace.py E GRASPS OUT.json ['{"force_maximum_runaway": 0.0}']
+    python scripts/squeeze_force_maximum_trace.py youngs_modulus=1e4 'grasps=[16,64]' out=trace.json
+    python scripts/squeeze_force_maximum_trace.py mesh=cuboid_30x30x30 'solver={force_maximum_runaway: 0.0}'
 
-E: Young's modulus [Pa]; GRASPS: comma-separated grasp indices; the optional JSON overrides
-squeeze_solver_options (linear_solver is "direct"). The mesh is tests/data/cuboid_30x30x30_ftetwild.vtu with
-sample_antipodal_grasps(mesh, 100, friction_coefficient=0.7, seed=0); MESH1000=1: the data path's
-cuboid_30x30x30 (target_nodes=1000; XDG_CACHE_HOME must hold the fTetWild mesh cache) and its 100 grasps;
-MESHFILE=path (NG grasps, default 16): another tet mesh. Uses the solver's private load-stepping hooks.
+Config: configs/squeeze_force_maximum_trace.yaml. Uses the solver's private load-stepping hooks.
 """
 
 import json
-import os
-import sys
 import time
 from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
 
 from defgraspnets import fem
 from defgraspnets.grasp.sampler import sample_antipodal_grasps
@@ -24,23 +22,24 @@ from defgraspnets.grasp.squeeze import make_squeeze_solver, squeeze_ramp, squeez
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def main() -> None:
-    E = float(sys.argv[1])
-    ids = [int(x) for x in sys.argv[2].split(",")]
-    out = sys.argv[3]
-    extra = json.loads(sys.argv[4]) if len(sys.argv) > 4 else {}
-    if os.environ.get("MESH1000"):
-        from defgraspnets.grasp.datagen import resolve_object_mesh
-
-        mesh = resolve_object_mesh("cuboid_30x30x30", target_nodes=1000)
-        grasps = sample_antipodal_grasps(mesh, 100, friction_coefficient=0.7, rotations_per_axis=4, seed=0)
-    elif os.environ.get("MESHFILE"):
-        mesh = fem.TetMesh.load(Path(os.environ["MESHFILE"]))
-        grasps = sample_antipodal_grasps(mesh, num_grasps=int(os.environ.get("NG", 16)), seed=0)
-    else:
+@hydra.main(version_base="1.3", config_path="../configs", config_name="squeeze_force_maximum_trace")
+def main(cfg: DictConfig) -> None:
+    E = float(cfg.youngs_modulus)
+    ids = [int(x) for x in cfg.grasps]
+    out = cfg.out
+    extra = OmegaConf.to_container(cfg.solver, resolve=True) if cfg.solver is not None else {}
+    if cfg.mesh == "test":
         mesh = fem.TetMesh.load(ROOT / "tests" / "data" / "cuboid_30x30x30_ftetwild.vtu")
         grasps = sample_antipodal_grasps(mesh, num_grasps=100, friction_coefficient=0.7, seed=0)
-    steps = int(os.environ.get("STEPS", 50))
+    elif Path(cfg.mesh).suffix:
+        mesh = fem.TetMesh.load(Path(cfg.mesh))
+        grasps = sample_antipodal_grasps(mesh, num_grasps=int(cfg.num_grasps), seed=0)
+    else:
+        from defgraspnets.grasp.datagen import resolve_object_mesh
+
+        mesh = resolve_object_mesh(cfg.mesh, target_nodes=int(cfg.target_nodes))
+        grasps = sample_antipodal_grasps(mesh, 100, friction_coefficient=0.7, rotations_per_axis=4, seed=0)
+    steps = int(cfg.steps)
     material = fem.Material(E, 0.3, 1000.0, model="neohookean")
     results = []
     for g in ids:
