@@ -28,10 +28,20 @@ log = logging.getLogger("datagen.grasps")
 
 @hydra.main(version_base="1.3", config_path="../configs", config_name="datagen/grasps")
 def main(cfg: DictConfig) -> None:
-    from defgraspnets.grasp.datagen import generate_object_shards, resolve_object_mesh, structured_box
+    from defgraspnets.grasp.datagen import (
+        claim_object,
+        generate_object_shards,
+        resolve_object_mesh,
+        structured_box,
+    )
     from defgraspnets.grasp.experiments import experiment_solver_options
     from defgraspnets.grasp.squeeze import squeeze_solver_options
 
+    if cfg.claim_dir and not claim_object(cfg.claim_dir, cfg.object):
+        log.info("%s: claimed by another worker, skipped", cfg.object)
+        return
+    if cfg.claim_dir:
+        log.info("claimed object %s for this worker", cfg.object)
     obj, labels = cfg.object, {}
     if obj == "box":
         obj = structured_box(cfg.box.size, cfg.box.divisions)
@@ -43,6 +53,8 @@ def main(cfg: DictConfig) -> None:
         **labels,
         out_dir=cfg.out_dir,
         youngs_modulus=list(cfg.youngs_modulus),
+        moduli_per_object=cfg.moduli_per_object,
+        all_moduli_objects=list(cfg.all_moduli_objects),
         num_grasps=cfg.num_grasps,
         rotations_per_axis=cfg.rotations_per_axis,
         steps=cfg.steps,

@@ -145,6 +145,39 @@ def test_moduli_in_one_batch_give_the_same_data(data_dir, tmp_path, monkeypatch)
                 np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-9 * np.abs(b).max())
 
 
+def test_moduli_per_object_simulates_the_drawn_moduli_only(data_dir, tmp_path):
+    """moduli_per_object=1 (the thesis's count): the shard holds one modulus, the one drawn for the object,
+    and its ramps are those of the all-moduli shard at that modulus (the same grasps, solved alone)."""
+    (chosen,) = datagen.object_moduli("tinybox", MODULI, per_object=1, seed=0)
+    (r,) = _generate(tmp_path, moduli_per_object=1)
+    one, every = GraspShard(r.path), GraspShard(data_dir / "tinybox__shard0of1.h5")
+    np.testing.assert_array_equal(one.object.youngs_modulus, [chosen])
+    assert r.total == GRASPS and one.num_moduli == 1
+    k = MODULI.index(chosen)
+    np.testing.assert_array_equal(one.status[0], every.status[k])
+    np.testing.assert_array_equal(one.grasp_pose, every.grasp_pose)
+    for g in range(GRASPS):
+        np.testing.assert_allclose(one.force[0, g], every.force[k, g], rtol=1e-12)
+        for s in range(STEPS):
+            for a, b in zip(one.fields(0, g, s), every.fields(k, g, s)):
+                np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-9 * np.abs(b).max())
+
+
+def test_object_moduli_draws_per_object_and_keeps_the_level2_objects_whole():
+    moduli = np.geomspace(1e4, 1e7, 10).tolist()
+    names = [f"object_{i}" for i in range(72)]
+    draws = {n: datagen.object_moduli(n, moduli, per_object=1, seed=0) for n in names}
+    assert all(len(d) == 1 and d[0] in moduli for d in draws.values())
+    # reproducible (a resumed run draws the same), independent of the other objects, seeded
+    assert draws == {n: datagen.object_moduli(n, moduli, 1, 0) for n in reversed(names)}
+    assert [datagen.object_moduli(n, moduli, 1, 1) for n in names] != list(draws.values())
+    assert len({d[0] for d in draws.values()}) >= 8  # the moduli are spread over the objects
+    three = datagen.object_moduli("object_0", moduli, per_object=3, seed=0)
+    assert len(set(three)) == 3 and three == sorted(three)  # distinct, in the list's order
+    assert datagen.object_moduli("object_0", moduli, None) == moduli
+    assert datagen.object_moduli("object_0", moduli, 1, 0, all_moduli_objects=["object_0"]) == moduli
+
+
 def test_failed_ramps_are_not_marked_solved(tmp_path, monkeypatch):
     real = datagen._squeeze_modulus
 
@@ -276,6 +309,9 @@ def test_a_killed_stream_resumes_with_the_unwritten_ramps(tmp_path, monkeypatch)
         (dict(material_model="hookean"), "material_model"),
         (dict(moduli_per_solver=0), "moduli_per_solver"),
         (dict(stream_slots=-1), "stream_slots"),
+        (dict(moduli_per_object=0), "moduli_per_object"),
+        (dict(moduli_per_object=3), "moduli_per_object"),
+        (dict(moduli_per_object=1.5), "moduli_per_object"),
     ],
 )
 def test_bad_input_raises(tmp_path, kw, match):

@@ -35,7 +35,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import os
 import time
+import zlib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -70,10 +72,12 @@ from .squeeze import GRIP_DOF, finger_contact_poses, make_squeeze_solver, squeez
 __all__ = [
     "STATUS_INVERTED",
     "ShardResult",
+    "claim_object",
     "experiment_layout",
     "generate_object_shards",
     "gripper_fingers",
     "load_object_mesh",
+    "object_moduli",
     "resolve_experiment_settings",
     "resolve_experiments",
     "resolve_object_mesh",
@@ -199,6 +203,61 @@ def shard_grasp_indices(num_grasps: int, shard_index: int, shard_count: int) -> 
     if part.size == 0:
         raise ValueError(f"shard {shard_index} of {shard_count} holds no grasp ({num_grasps} grasps in all)")
     return part
+
+
+def claim_object(claim_dir: str | Path, name: str) -> bool:
+    """Claim object ``name`` for this process in ``claim_dir``, shared by the workers of one run.
+
+    Workers that each walk the whole object list and simulate only what they claim share the set by
+    demand (a worker that finished takes the next unclaimed object), instead of a fixed deal that leaves
+    GPUs idle behind a slow object. The claim is an ``os.mkdir`` of ``claim_dir/<name>``, atomic on a
+    local file system: exactly one worker gets it. Claims say who works on what, not what is done (the
+    shards do): clear ``claim_dir`` before a new run; a re-run resumes unfinished shards as always.
+
+    Returns: True if this call claimed the object, False if another worker had.
+    """
+    root = Path(claim_dir)
+    root.mkdir(parents=True, exist_ok=True)
+    key = str(name).replace(os.sep, "_").replace("/", "_") or "_"
+    try:
+        os.mkdir(root / key)
+    except FileExistsError:
+        return False
+    return True
+
+
+def object_moduli(
+    name: str,
+    youngs_modulus: Sequence[float],
+    per_object: int | None = None,
+    seed: int = 0,
+    all_moduli_objects: Sequence[str] = (),
+) -> list[float]:
+    """The Young's moduli [Pa] that object ``name`` is simulated with.
+
+    The thesis's data set (§7.4) holds each object at one modulus, ``N = #objects x 100 grasps x 50 steps
+    = 3.55e5``, and tests unseen moduli (level 2) on an object held at ten (a 7 / 3 split). ``per_object``
+    moduli of the list are drawn for each object without replacement by a generator seeded with ``seed``
+    and a CRC of the name (as the splits are: adding an object does not change the others' draws, and a
+    resumed run draws the same), returned in the list's order; objects named in ``all_moduli_objects``
+    (the level-2 objects) and every object when ``per_object`` is None keep the whole list.
+
+    Raises:
+        ValueError: ``per_object`` not an integer in [1, len(youngs_modulus)].
+    """
+    moduli = [float(e) for e in youngs_modulus]
+    if per_object is not None and not (
+        isinstance(per_object, (int, np.integer)) and 1 <= per_object <= len(moduli)
+    ):
+        raise ValueError(
+            f"moduli_per_object must be null or an integer in [1, {len(moduli)}] (the number of moduli "
+            f"listed), got {per_object!r}"
+        )
+    if per_object is None or name in set(all_moduli_objects):
+        return moduli
+    rng = np.random.default_rng([int(seed), zlib.crc32(f"moduli/{name}".encode())])
+    chosen = np.sort(rng.choice(len(moduli), size=int(per_object), replace=False))
+    return [moduli[i] for i in chosen]
 
 
 def _check_inputs(moduli, num_grasps, steps, max_force, friction, poisson_ratio, density, shard_count):
@@ -711,6 +770,8 @@ def generate_object_shards(
     directions_per_solver: int = 1,
     moduli_per_solver: int = 1,
     stream_slots: int = 0,
+    moduli_per_object: int | None = None,
+    all_moduli_objects: Sequence[str] = (),
 ) -> list[ShardResult]:
     """Simulate the squeeze ramps (and optionally the DefGraspSim experiments) of one object and write its
     grasp shard(s).
@@ -720,7 +781,8 @@ def generate_object_shards(
             or a :class:`~defgraspnets.fem.TetMesh` (its ``name`` names the shard; ``category`` and
             ``source`` label it).
         out_dir: directory of the shards ``<object>__shard<i>of<n>.h5``.
-        youngs_modulus: the K moduli [Pa] (all in every shard). poisson_ratio, density [kg/m^3]: shared.
+        youngs_modulus: the moduli [Pa] (all K in every shard, unless ``moduli_per_object``).
+            poisson_ratio, density [kg/m^3]: shared.
         material_model: constitutive energy (:class:`~defgraspnets.fem.Material`): "neohookean" (default;
             no element can invert, so soft moduli converge at 15 N) or "corotated" (the thesis's FleX
             model; soft objects invert and fail there, e.g. E = 1e4 Pa past 7 N on a 50 mm box).
@@ -758,6 +820,8 @@ def generate_object_shards(
             modulus once all its ramps are). ``moduli_per_solver`` is then unused. 0: batches. On one
             H100 128 slots tie ``moduli_per_solver=4`` (400 ramps of 50 steps: 38.5-40.4 against
             39.3-41.9 s; ``benchmarks/grasp_datagen_stream_h100_s32.json``).
+        moduli_per_object: simulate only this many of ``youngs_modulus``, drawn per object (the thesis's
+            count: 1), except for the objects in ``all_moduli_objects``; None: all (:func:`object_moduli`).
 
     Returns:
         One :class:`ShardResult` per shard handled.
@@ -782,6 +846,7 @@ def generate_object_shards(
         raise ValueError(f"moduli_per_solver must be an integer >= 1, got {moduli_per_solver!r}")
     if not (isinstance(stream_slots, (int, np.integer)) and stream_slots >= 0):
         raise ValueError(f"stream_slots must be an integer >= 0 (0: batches), got {stream_slots!r}")
+    object_moduli("", moduli, moduli_per_object)  # a bad count fails before the object is meshed
     layout = experiment_layout(names, settings) if names else None
     out_dir = Path(out_dir)
     if isinstance(obj, fem.TetMesh):
@@ -791,6 +856,7 @@ def generate_object_shards(
     else:
         raise ValueError(f"obj must be an object name or a TetMesh, got {type(obj).__name__}")
     name = mesh.name
+    moduli = np.asarray(object_moduli(name, moduli, moduli_per_object, seed, all_moduli_objects))
     indices = range(shard_count) if shard_index is None else [int(shard_index)]
     paths = {i: out_dir / shard_file_name(name, i, shard_count) for i in indices}
     if not overwrite and all(p.exists() for p in paths.values()):
