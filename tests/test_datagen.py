@@ -178,6 +178,18 @@ def test_object_moduli_draws_per_object_and_keeps_the_level2_objects_whole():
     assert datagen.object_moduli("object_0", moduli, 1, 0, all_moduli_objects=["object_0"]) == moduli
 
 
+def test_an_object_is_claimed_once(tmp_path):
+    """claim_dir: the first worker to claim an object gets it, every later claim (any process) is refused;
+    a file path claims under a flat name (no directories made from it)."""
+    claims = tmp_path / "claims"
+    assert datagen.claim_object(claims, "cuboid_30x30x30")
+    assert not datagen.claim_object(claims, "cuboid_30x30x30")
+    assert datagen.claim_object(claims, "lemon")
+    assert datagen.claim_object(claims, "/data/meshes/mug.vtu")
+    assert not datagen.claim_object(claims, "/data/meshes/mug.vtu")
+    assert sorted(p.name for p in claims.iterdir()) == ["_data_meshes_mug.vtu", "cuboid_30x30x30", "lemon"]
+
+
 def test_failed_ramps_are_not_marked_solved(tmp_path, monkeypatch):
     real = datagen._squeeze_modulus
 
