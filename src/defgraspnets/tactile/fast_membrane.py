@@ -56,11 +56,14 @@ edge radius r > 0 the obstacle ramps to zero within r of an edge,
 membrane's thickness that the coarse piecewise-linear surface can follow. This is a least-distance program in
 ``z = L^-1 w_K`` (``C_KK = L L^T``), solved exactly by non-negative least squares (Lawson and Hanson, ch.
 23). Samples that the deformed membrane pushes into the scene (e.g. a flank moved into a side face) are
-added with ``psi_q = w_q + t_q`` and the program is solved again (at most ``max_iterations`` passes). A
-sample is *in contact* when its obstacle condition holds with equality or its final gap is below the
-tolerance; the contact area ``A_C`` is the sum of their area shares, and a column is in contact when it
-carries load. ``m = 0`` keeps the vertex-wise model above, the default (measured in
-``benchmarks/fast_membrane_subvertex_cpu.md``: the sub-vertex contact does not improve the closed loops).
+added with ``psi_q = w_q + t_q`` and the program is solved again (at most ``max_iterations`` passes). The
+samples with an obstacle condition are *in contact* (as the columns that penetrated in the vertex-wise
+model; n = 1 gives the same set) and a column is in contact when it carries load. The contact area ``A_C``
+is the area of the reference surface inside the scene, ``phi`` interpolated linearly on the n^2
+sub-triangles of each triangle (:func:`negative_area_fraction`; continuous in the object's pose), plus the
+area shares of the samples added by later passes. ``m = 0`` keeps the vertex-wise model above, the
+default (measured in ``benchmarks/fast_membrane_subvertex_cpu.md``: the sub-vertex contact does not improve
+the closed loops).
 
 The state is path independent (no friction history), so every pose is solved from scratch.
 
@@ -109,6 +112,7 @@ __all__ = [
     "fem_samples",
     "indenter_scene",
     "least_distance_multipliers",
+    "negative_area_fraction",
     "run_fem_calibration",
     "subdivision_points",
 ]
@@ -348,12 +352,13 @@ class FastMembrane:
                 f"contact_samples_per_face must be 0 or (n + 1)(n + 2) / 2 (3, 6, 10, 15, ...), got {m}"
             )
         self.contact_subdivisions = n
-        self.sample_barycentric, share = subdivision_points(n)  # (m, 3), (m,)
+        self.sample_barycentric, share, self._sub_triangles = subdivision_points(n)  # (m, 3), (m,), (n^2, 3)
         faces = np.asarray(self.sensor.inner_faces, dtype=np.int64)  # column indices (layer 0)
         movable = ~self.clamped
         self.sample_faces = faces[movable[faces].any(axis=1)]  # faces with at least one movable column
         x = self.outer_reference[self.sample_faces]
         face_area = 0.5 * np.linalg.norm(np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), axis=1)
+        self.sample_face_area = face_area  # (F,) outer reference triangle areas [m^2]
         #: (F, m) area each contact sample stands for, outer reference surface [m^2]
         self.sample_area = face_area[:, None] * share[None, :]
         self._movable_index = np.full(self.num_columns, -1)
@@ -541,6 +546,7 @@ class FastMembrane:
         cols, coeff, psi, sid = np.empty((0, 3), dtype=np.int64), np.empty((0, 3)), np.empty(0), np.empty(0)
         iterations = 0
         solved = False
+        area = 0.0
         for iterations in range(1, self.max_iterations + 1):  # noqa: B007 (the count is reported)
             faces, yq, phi = self._face_samples(scene, rot, pos, u)
             solved = False
@@ -549,9 +555,14 @@ class FastMembrane:
             pen = phi < (0.0 if iterations == 1 else -self.tolerance)
             if iterations > 1:
                 pen &= ~np.isin(faces[:, None] * m + np.arange(m)[None, :], sid)
+            if iterations == 1:  # the obstacle region's area, continuous in the object's pose
+                frac = negative_area_fraction(phi[:, self._sub_triangles]).mean(axis=1)
+                area = float((self.sample_face_area[faces] * frac).sum())
             if not pen.any():
                 break
             f, k = np.nonzero(pen)
+            if iterations > 1:  # points added by a later pass count with their area shares
+                area += float(self.sample_area[faces[f], k].sum())
             c, cc, ps = self._rows(scene, rot, pos, faces[f], self.sample_barycentric[k], yq[f, k], u)
             keep = cc.sum(axis=1) > 0
             cols, coeff = np.concatenate([cols, c[keep]]), np.concatenate([coeff, cc[keep]])
@@ -572,12 +583,10 @@ class FastMembrane:
             solved = True
         if solved:
             faces, yq, phi = self._face_samples(scene, rot, pos, u)
-        # contact samples: a constraint row holds with equality, or the final gap is below the tolerance
-        w = (u[cols] * self.inward[cols]).sum(axis=2)
-        active = sid[(coeff * w).sum(axis=1) - psi <= self.tolerance]
+        # contact samples: those that penetrated the scene (the obstacle region; at n = 1 the vertex-wise
+        # model's contact set)
         ids = (faces[:, None] * m + np.arange(m)[None, :]).ravel()
-        touching = (phi.ravel() <= self.tolerance) | np.isin(ids, active)
-        area = float(self.sample_area.ravel()[ids[touching]].sum())
+        touching = np.isin(ids, sid)
         points = yq.reshape(-1, 3)[touching]
         phi_v = scene.distance((self.outer_reference + u) @ rot.T + pos)
         movable = ~self.clamped
@@ -589,7 +598,7 @@ class FastMembrane:
         positions = self.reference + np.tile(u, (self.sensor.layers + 1, 1))
         volume = enclosed_volume(positions, self.sensor.inner_faces, self.sensor.rim_center)
         dv = max(0.0, self.reference_volume - volume)
-        in_contact = bool(touching.any())
+        in_contact = bool(touching.any()) and area > 0
         cal = self.calibration
         fn = cal.volume_stiffness * dv + cal.area_pressure * area if in_contact else 0.0
         force = np.zeros(3)
@@ -621,13 +630,14 @@ class FastMembrane:
         return self.sensor.inner_surface(state.positions)
 
 
-def subdivision_points(n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Grid points of a uniform n-subdivision of a triangle and their area shares.
+def subdivision_points(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Grid points of a uniform n-subdivision of a triangle, their area shares and the sub-triangles.
 
-    Returns the barycentric coordinates ``(i, j, n - i - j) / n`` ((n + 1)(n + 2) / 2, 3), corners first, and
+    Returns the barycentric coordinates ``(i, j, n - i - j) / n`` ((n + 1)(n + 2) / 2, 3), corners first,
     each point's share of the triangle's area (lumped: one third of each of the n^2 sub-triangles it
-    belongs to; corners 1 / (3 n^2), edge points 1 / n^2, interior points 2 / n^2; they sum to 1). n = 1
-    gives the corners alone, with the lumped vertex areas of the vertex-wise contact."""
+    belongs to; corners 1 / (3 n^2), edge points 1 / n^2, interior points 2 / n^2; they sum to 1; n = 1
+    gives the corners alone, with the lumped vertex areas of the vertex-wise contact) and the n^2
+    sub-triangles as (n^2, 3) indices into the points."""
     if int(n) < 1:
         raise ValueError(f"n must be >= 1, got {n}")
     n = int(n)
@@ -637,7 +647,31 @@ def subdivision_points(n: int) -> tuple[np.ndarray, np.ndarray]:
     edge = (bary == 0.0).any(axis=1) & ~corners
     share = np.where(corners, 1.0 / 3.0, np.where(edge, 1.0, 2.0)) / n**2
     order = np.argsort(~corners, kind="stable")
-    return bary[order], share[order]
+    where = {ij[k]: r for r, k in enumerate(order)}
+    sub = [(where[i, j], where[i + 1, j], where[i, j + 1]) for i in range(n) for j in range(n - i)]
+    sub += [
+        (where[i + 1, j], where[i + 1, j + 1], where[i, j + 1])
+        for i in range(n - 1)
+        for j in range(n - 1 - i)
+    ]
+    return bary[order], share[order], np.array(sub, dtype=np.int64)
+
+
+def negative_area_fraction(values) -> np.ndarray:
+    """Fraction of a triangle where the linear interpolation of its corner ``values`` (..., 3) is < 0.
+
+    With the sorted values ``v0 <= v1 <= v2``: 0 if ``v0 >= 0``; ``v0^2 / ((v0 - v1)(v0 - v2))`` if only
+    ``v0 < 0``; ``1 - v2^2 / ((v2 - v0)(v2 - v1))`` if only ``v2 >= 0``; 1 if all are negative. It is
+    continuous in the values, so an area measured with it moves continuously with the object."""
+    v = np.sort(np.asarray(values, dtype=np.float64), axis=-1)
+    v0, v1, v2 = v[..., 0], v[..., 1], v[..., 2]
+    out = np.where(v2 < 0, 1.0, 0.0)
+    one = (v0 < 0) & (v1 >= 0)
+    two = (v1 < 0) & (v2 >= 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.where(one, v0**2 / ((v0 - v1) * (v0 - v2)), out)
+        out = np.where(two, 1.0 - v2**2 / ((v2 - v0) * (v2 - v1)), out)
+    return out
 
 
 def least_distance_multipliers(matrix, bound) -> np.ndarray:
