@@ -346,7 +346,7 @@ class FastMembrane:
     # ------------------------------------------------------------------ sub-vertex contact set-up
     def _setup_samples(self, m: int) -> None:
         """Sample layout, areas and the (lazily filled) Green's function of the sub-vertex contact."""
-        n = int(round((np.sqrt(8 * m + 1) - 3) / 2))
+        n = int(round((np.sqrt(8 * max(m, 0) + 1) - 3) / 2))
         if n < 1 or (n + 1) * (n + 2) // 2 != m:
             raise ValueError(
                 f"contact_samples_per_face must be 0 or (n + 1)(n + 2) / 2 (3, 6, 10, 15, ...), got {m}"
