@@ -75,7 +75,8 @@ it),
     F_n = k_V dV + k_A A_C,
 
 directed against the area-weighted object normal over the contact (``A_C``: the lumped outer areas of
-the contact columns, or with sub-vertex contact the area shares of the contact samples); ``k_V``
+the contact columns; with sub-vertex contact see above, and the normals weighted by area share times
+obstacle depth ``psi_q``, so that the rim of the contact enters continuously); ``k_V``
 [N/m^3], ``k_A`` [Pa] and ``l`` [m] are fitted to the FEM sensor (:func:`calibrate`,
 ``scripts/calibrate_fast_membrane.py``).
 :data:`DEFAULT_CALIBRATION` holds the constants with their provenance and measured error.
@@ -603,8 +604,17 @@ class FastMembrane:
         fn = cal.volume_stiffness * dv + cal.area_pressure * area if in_contact else 0.0
         force = np.zeros(3)
         if in_contact:
+            # object normals weighted by area share x obstacle depth (the rim of the contact, psi -> 0,
+            # enters continuously)
             grad = scene.evaluate(points @ rot.T + pos)[1]
-            n = (self.sample_area.ravel()[ids[touching], None] * grad).sum(axis=0)
+            order = np.argsort(sid)
+            unique, start = np.unique(sid[order], return_index=True)
+            deepest = np.maximum.reduceat(psi[order], start)
+            where = np.searchsorted(unique, ids[touching])
+            weight = self.sample_area.ravel()[ids[touching]] * np.maximum(deepest[where], 0.0)
+            if not weight.any():
+                weight = self.sample_area.ravel()[ids[touching]]
+            n = (weight[:, None] * grad).sum(axis=0)
             norm = np.linalg.norm(n)
             if norm > 0:
                 force = -fn * n / norm
