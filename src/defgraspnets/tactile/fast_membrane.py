@@ -907,6 +907,8 @@ def run_fem_calibration(
     sphere_tilt_deg: float = 25.0,
     pipe_turn_deg: float = 30.0,
     pipe_offset: float = 0.01,
+    contact_samples_per_face: int = 0,
+    contact_edge_radius: float = 0.0,
 ) -> dict:
     """Calibrate the fast model against the sealed FEM sensor and report the errors (JSON-ready).
 
@@ -916,7 +918,9 @@ def run_fem_calibration(
     ``levels`` x ``max_depth`` [m]. Fast model: the ``fast_cap_divisions`` membrane FEM-inflated to the same
     gas state. The fit (:func:`calibrate`) uses all samples; a second fit on the spheres only is evaluated on
     the pipes (cross-shape generalization). The report's ``calibration`` goes into
-    :data:`DEFAULT_CALIBRATION`.
+    :data:`DEFAULT_CALIBRATION`. ``contact_samples_per_face``, ``contact_edge_radius``: the fast model's
+    contact (:class:`FastMembrane`); ``fit_default_constants`` reports the errors of
+    :data:`DEFAULT_CALIBRATION` unchanged on that model.
     """
     from scipy.spatial.transform import Rotation
 
@@ -977,9 +981,22 @@ def run_fem_calibration(
 
     fast_sensor = build_membrane(cap_divisions=fast_cap_divisions, layers=2)
     inflated = make_simulator(fast_sensor, sphere, gauge_pressure, False, batch_size=1, intrinsics=None)
-    model = FastMembrane(fast_sensor, inflated.reference.positions)
+    model = FastMembrane(
+        fast_sensor,
+        inflated.reference.positions,
+        contact_samples_per_face=contact_samples_per_face,
+        contact_edge_radius=contact_edge_radius,
+    )
     camera = DepthCamera(intrinsics)
     cal, rows = calibrate(model, spheres + pipes, camera)
+    default = model.with_calibration(DEFAULT_CALIBRATION)
+    _, rows_default = calibrate(
+        default, spheres + pipes, camera, screening_lengths=[DEFAULT_CALIBRATION.screening_length]
+    )
+    rows_default = [
+        {**row, "model_force": default.solve(smp["scene"], np.eye(4)).normal_force}
+        for smp, row in zip(spheres + pipes, rows_default)
+    ]
     cal_sph, _ = calibrate(model, spheres, camera)
     # the sphere-only constants on the pipes: depth errors from calibrate() at the fixed screening length,
     # forces from the fixed model (calibrate() refits the stiffnesses)
@@ -998,6 +1015,7 @@ def run_fem_calibration(
             "area_pressure": cal.area_pressure,
         },
         "fit_all": calibration_summary(rows),
+        "fit_default_constants": calibration_summary(rows_default),
         "cross_shape_fit_spheres_test_pipes": calibration_summary(cross),
         "samples": rows,
         "fem": {
@@ -1015,6 +1033,11 @@ def run_fem_calibration(
             "depths_mm": [max_depth * 1e3 * lv for lv in levels],
             "wall_time_s": t_fem,
         },
-        "fast_model": {"cap_divisions": fast_cap_divisions, "mean_solve_time_s": float(np.mean(timing))},
+        "fast_model": {
+            "cap_divisions": fast_cap_divisions,
+            "contact_samples_per_face": contact_samples_per_face,
+            "contact_edge_radius_m": contact_edge_radius,
+            "mean_solve_time_s": float(np.mean(timing)),
+        },
         "total_wall_time_s": time.perf_counter() - t0,
     }
