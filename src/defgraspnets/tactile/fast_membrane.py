@@ -544,7 +544,8 @@ class FastMembrane:
         m = self.sample_barycentric.shape[0]
         u = np.zeros((s, 3))
         load = np.zeros(s)
-        cols, coeff, psi, sid = np.empty((0, 3), dtype=np.int64), np.empty((0, 3)), np.empty(0), np.empty(0)
+        cols, coeff, psi = np.empty((0, 3), dtype=np.int64), np.empty((0, 3)), np.empty(0)
+        sid = np.empty(0, dtype=np.int64)  # sample id (face * m + k) of each row
         iterations = 0
         solved = False
         area = 0.0
