@@ -43,6 +43,8 @@ def main(cfg: DictConfig) -> dict:
         sphere_tilt_deg=cfg.sphere_tilt_deg,
         pipe_turn_deg=cfg.pipe_turn_deg,
         pipe_offset=cfg.pipe_offset,
+        contact_samples_per_face=cfg.contact_samples_per_face,
+        contact_edge_radius=cfg.contact_edge_radius,
     )
     report["machine"] = platform.processor() or platform.machine()
     out = Path(cfg.paths.output_dir) / "fast_membrane_calibration.json"
@@ -55,7 +57,8 @@ def main(cfg: DictConfig) -> dict:
             r["name"], r["fem_force"], r["model_force"], r["depth_rms_error"] * 1e3,
             r["fem_contact_depth_proxy"], r["model_contact_depth_proxy"], r["fem_depth_proxy"],
         )  # fmt: skip
-    keys = ("calibration", "fit_all", "cross_shape_fit_spheres_test_pipes", "fast_model")
+    keys = ("calibration", "fit_all", "fit_default_constants", "cross_shape_fit_spheres_test_pipes")
+    keys += ("fast_model",)
     log.info("%s", json.dumps({k: report[k] for k in keys}, indent=2))
     log.info("wrote %s", out)
     return report

@@ -426,19 +426,33 @@ def build_fast_simulation(
     calibration=None,
     deformation_threshold: float = 1.0e-3,
     core_fraction: float = 0.5,
+    contact_samples_per_face: int = 0,
+    contact_edge_radius: float = 0.0,
 ) -> TactileSimulation:
     """The membrane mesh FEM-inflated to ``gauge_pressure`` [Pa], the calibrated fast model on it and the
     interior camera (pico flexx at ``camera_scale`` of its resolution): the closed loop's sensor
-    (``deformation_threshold``, ``core_fraction``: see :class:`TactileSimulation`)."""
+    (``calibration``: a :class:`~defgraspnets.tactile.fast_membrane.FastMembraneCalibration` or a mapping of
+    its three constants, None for the default; ``deformation_threshold``, ``core_fraction``: see
+    :class:`TactileSimulation`;
+    ``contact_samples_per_face`` (0: vertex-wise contact; (n + 1)(n + 2) / 2: sub-vertex contact) and
+    ``contact_edge_radius`` [m]: see :class:`~defgraspnets.tactile.fast_membrane.FastMembrane`)."""
     from defgraspnets.tactile.camera import PICO_FLEXX
     from defgraspnets.tactile.datasets import make_simulator
-    from defgraspnets.tactile.fast_membrane import DEFAULT_CALIBRATION
+    from defgraspnets.tactile.fast_membrane import DEFAULT_CALIBRATION, FastMembraneCalibration
     from defgraspnets.tactile.indenters import SphereIndenter
     from defgraspnets.tactile.membrane import build_membrane
 
+    if calibration is not None and not isinstance(calibration, FastMembraneCalibration):
+        calibration = FastMembraneCalibration(**{k: float(v) for k, v in dict(calibration).items()})
     sensor = build_membrane(cap_divisions=cap_divisions, layers=2)
     inflated = make_simulator(sensor, SphereIndenter(radius=0.01), gauge_pressure, False, intrinsics=None)
-    model = FastMembrane(sensor, inflated.reference.positions, calibration or DEFAULT_CALIBRATION)
+    model = FastMembrane(
+        sensor,
+        inflated.reference.positions,
+        calibration or DEFAULT_CALIBRATION,
+        contact_samples_per_face=contact_samples_per_face,
+        contact_edge_radius=contact_edge_radius,
+    )
     return TactileSimulation(
         model, DepthCamera(PICO_FLEXX.scaled(camera_scale)), deformation_threshold, core_fraction
     )

@@ -26,6 +26,45 @@ mapped to the world by the sensor pose ``x_s = R y_s + p``:
    against the stiffness of the curved, pressurized shell and of bending; l is calibrated);
 3. repeat 1-2 until no outer vertex penetrates (a few iterations).
 
+Sub-vertex contact (``contact_samples_per_face = m > 0``, ``m = (n + 1)(n + 2) / 2``). The vertex-wise
+contact above sees an object only where a *vertex* penetrates it: a feature narrower than the mesh spacing
+h (3.9 mm at the pole of the 20-division membrane) is missed or read in steps of h. Instead, contact is
+tested at m sample points on each outer triangle f = (a, b, c), the grid points of its uniform
+n-subdivision (corners included, :func:`subdivision_points`), with barycentric weights ``beta_qa`` and
+lumped shares of the triangle's area (summing to ``A_f``); a sample moves with its triangle's columns,
+``y_q = sum_a beta_qa (X_a^o + u_a)``. The membrane carries frictionless contact loads along the columns'
+inward directions ``d_a = -n_a``: a load ``mu_a`` at column a (normalized by the membrane tension, [m])
+displaces every column through the screened-membrane Green's function ``G = A^-1`` (A the operator above
+on the unclamped columns, applied to each Cartesian component),
+
+    u = G D mu,      w_K = C_KK mu_K,      C_ab = G_ab (d_a . d_b),
+
+where ``w_a = d_a . u_a`` is the normal displacement of column a and K the loaded columns (of the
+triangles with a constrained sample). A loaded column moves freely in the tangent directions
+(frictionless), so no column jumps when a sample enters or leaves the contact. The loads minimize the
+membrane energy ``1/2 u^T A u = 1/2 w_K^T C_KK^-1 w_K`` subject to an obstacle condition at the samples
+that penetrate the scene in the reference state,
+
+    w_q = sum_a beta_qa (d_q . d_a) w_a >= psi_q,
+
+``d_q`` the normalized interpolation of the columns' ``d_a`` and ``psi_q`` the sample's exit depth along
+``d_q`` (sphere tracing, with bisection where the ray runs along a face; as step 1 for a vertex). With an
+edge radius r > 0 the obstacle ramps to zero within r of an edge,
+``psi_q = t_q min(1, e_q / min(r, t_q / 2))`` with ``e_q = -phi(y_q)`` the distance to the nearest face
+(``t_q cos(theta)`` away from edges, theta the exit face's angle to ``d_q``, so faces inclined by less than
+60 deg and smooth objects keep ``psi_q = t_q``), a rounding of the object's edges at the scale of the
+membrane's thickness that the coarse piecewise-linear surface can follow. This is a least-distance program in
+``z = L^-1 w_K`` (``C_KK = L L^T``), solved exactly by non-negative least squares (Lawson and Hanson, ch.
+23). Samples that the deformed membrane pushes into the scene (e.g. a flank moved into a side face) are
+added with ``psi_q = w_q + t_q`` and the program is solved again (at most ``max_iterations`` passes). The
+samples with an obstacle condition are *in contact* (as the columns that penetrated in the vertex-wise
+model; n = 1 gives the same set) and a column is in contact when it carries load. The contact area ``A_C``
+is the area of the reference surface inside the scene, ``phi`` interpolated linearly on the n^2
+sub-triangles of each triangle (:func:`negative_area_fraction`; continuous in the object's pose), plus the
+area shares of the samples added by later passes. ``m = 0`` keeps the vertex-wise model above, the
+default (measured in ``benchmarks/fast_membrane_subvertex_cpu.md``: the sub-vertex contact does not improve
+the closed loops).
+
 The state is path independent (no friction history), so every pose is solved from scratch.
 
 Force. The normal force is a linear model in the two quantities that carry the load of a
@@ -35,8 +74,11 @@ it),
 
     F_n = k_V dV + k_A A_C,
 
-directed against the area-weighted object normal over the contact; ``k_V`` [N/m^3], ``k_A`` [Pa] and
-``l`` [m] are fitted to the FEM sensor (:func:`calibrate`, ``scripts/calibrate_fast_membrane.py``).
+directed against the area-weighted object normal over the contact (``A_C``: the lumped outer areas of
+the contact columns; with sub-vertex contact see above, and the normals weighted by area share times
+obstacle depth ``psi_q``, so that the rim of the contact enters continuously); ``k_V``
+[N/m^3], ``k_A`` [Pa] and ``l`` [m] are fitted to the FEM sensor (:func:`calibrate`,
+``scripts/calibrate_fast_membrane.py``).
 :data:`DEFAULT_CALIBRATION` holds the constants with their provenance and measured error.
 
 Limits: no friction (tangential load, shear of the membrane), no dynamics, no self-contact; the
@@ -70,7 +112,10 @@ __all__ = [
     "depth_change_error",
     "fem_samples",
     "indenter_scene",
+    "least_distance_multipliers",
+    "negative_area_fraction",
     "run_fem_calibration",
+    "subdivision_points",
 ]
 
 
@@ -182,8 +227,12 @@ class FastMembraneState:
         max_displacement: largest column displacement [m].
         residual_penetration: deepest remaining penetration of an outer vertex [m] (>= 0).
         clamped_contact: whether a clamped (rigid) rim column penetrates the scene.
-        iterations: active-set iterations used.
+        iterations: active-set (vertex-wise) or sequential-QP (sub-vertex) iterations used.
         solve_time: wall time [s].
+        contact_points: (P, 3) the contact samples, sensor frame [m] (sub-vertex contact; the outer
+            vertices of the contact columns for the vertex-wise model).
+        column_load: (S,) contact load of each column along its inward direction, normalized by the
+            membrane tension [m] (sub-vertex contact; None for the vertex-wise model).
     """
 
     positions: np.ndarray
@@ -198,6 +247,8 @@ class FastMembraneState:
     clamped_contact: bool
     iterations: int
     solve_time: float
+    contact_points: np.ndarray | None = None
+    column_load: np.ndarray | None = None
 
     @property
     def in_contact(self) -> bool:
@@ -213,7 +264,14 @@ class FastMembrane:
             ``MembraneSimulator(...).reference.positions`` (the FEM inflation of the same mesh).
         calibration: the model constants (default :data:`DEFAULT_CALIBRATION`).
         tolerance: penetration accepted as contact resolution [m].
-        max_iterations: active-set iterations.
+        max_iterations: active-set (vertex-wise) or sequential-QP (sub-vertex) iterations.
+        contact_samples_per_face: ``m``: 0 for the vertex-wise contact, else ``(n + 1)(n + 2) / 2`` (3, 6,
+            10, 15, ...) contact samples on each outer triangle, the grid of its n-subdivision (sub-vertex
+            contact, module docstring).
+        contact_margin: sub-vertex contact: faces whose vertices are farther from the scene than this plus
+            their longest edge [m] are not sampled.
+        contact_edge_radius: sub-vertex contact: ``r`` [m], the obstacle ramps to zero over this distance
+            from an object's edge (module docstring); 0 keeps the edges sharp.
     """
 
     def __init__(
@@ -223,6 +281,9 @@ class FastMembrane:
         calibration: FastMembraneCalibration = DEFAULT_CALIBRATION,
         tolerance: float = 1.0e-5,
         max_iterations: int = 8,
+        contact_samples_per_face: int = 0,
+        contact_margin: float = 5.0e-4,
+        contact_edge_radius: float = 0.0,
     ):
         if not isinstance(sensor, MembraneSensor):
             raise TypeError(f"sensor must be a MembraneSensor, got {type(sensor).__name__}")
@@ -262,10 +323,65 @@ class FastMembrane:
         self.outer_area = inner_area * ratio  # lumped outer-surface areas (thin shell) [m^2]
         self.operator = (stiffness + sp.diags(inner_area / calibration.screening_length**2)).tocsc()
         self.reference_volume = enclosed_volume(ref, sensor.inner_faces, sensor.rim_center)
+        self.contact_samples_per_face = int(contact_samples_per_face)
+        self.contact_margin = float(contact_margin)
+        self.contact_edge_radius = float(contact_edge_radius)
+        if not self.contact_margin >= 0:
+            raise ValueError(f"contact_margin must be >= 0 m, got {contact_margin}")
+        if self.contact_samples_per_face:
+            self._setup_samples(self.contact_samples_per_face)
 
     def with_calibration(self, calibration: FastMembraneCalibration) -> FastMembrane:
-        """The same mesh and reference with other constants."""
-        return FastMembrane(self.sensor, self.reference, calibration, self.tolerance, self.max_iterations)
+        """The same mesh, reference and contact options with other constants."""
+        return FastMembrane(
+            self.sensor,
+            self.reference,
+            calibration,
+            self.tolerance,
+            self.max_iterations,
+            self.contact_samples_per_face,
+            self.contact_margin,
+            self.contact_edge_radius,
+        )
+
+    # ------------------------------------------------------------------ sub-vertex contact set-up
+    def _setup_samples(self, m: int) -> None:
+        """Sample layout, areas and the (lazily filled) Green's function of the sub-vertex contact."""
+        n = int(round((np.sqrt(8 * max(m, 0) + 1) - 3) / 2))
+        if n < 1 or (n + 1) * (n + 2) // 2 != m:
+            raise ValueError(
+                f"contact_samples_per_face must be 0 or (n + 1)(n + 2) / 2 (3, 6, 10, 15, ...), got {m}"
+            )
+        self.contact_subdivisions = n
+        self.sample_barycentric, share, self._sub_triangles = subdivision_points(n)  # (m, 3), (m,), (n^2, 3)
+        faces = np.asarray(self.sensor.inner_faces, dtype=np.int64)  # column indices (layer 0)
+        movable = ~self.clamped
+        self.sample_faces = faces[movable[faces].any(axis=1)]  # faces with at least one movable column
+        x = self.outer_reference[self.sample_faces]
+        face_area = 0.5 * np.linalg.norm(np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), axis=1)
+        self.sample_face_area = face_area  # (F,) outer reference triangle areas [m^2]
+        #: (F, m) area each contact sample stands for, outer reference surface [m^2]
+        self.sample_area = face_area[:, None] * share[None, :]
+        self._movable_index = np.full(self.num_columns, -1)
+        self._movable_index[movable] = np.arange(movable.sum())
+        a = self.operator[movable][:, movable].tocsc()
+        self._green_factor = splu(a)
+        self._green = np.zeros((self.num_columns, self.num_columns))  # G[:, j], filled on demand
+        self._green_done = np.zeros(self.num_columns, dtype=bool)
+
+    def _green_columns(self, cols: np.ndarray) -> np.ndarray:
+        """(S, k) columns ``G[:, cols]`` of the screened-membrane Green's function (0 on the clamped rim)."""
+        missing = cols[~self._green_done[cols]]
+        if missing.size:
+            movable = ~self.clamped
+            rhs = np.zeros((int(movable.sum()), missing.size))
+            rhs[self._movable_index[missing], np.arange(missing.size)] = 1.0
+            sol = self._green_factor.solve(rhs)
+            block = np.zeros((self.num_columns, missing.size))
+            block[movable] = sol
+            self._green[:, missing] = block
+            self._green_done[missing] = True
+        return self._green[:, cols]
 
     # ------------------------------------------------------------------ mechanics
     def _extend(self, u: np.ndarray, fixed: np.ndarray) -> np.ndarray:
@@ -303,6 +419,8 @@ class FastMembrane:
         pose = check_rigid_transform(sensor_pose, "sensor_pose", single=True)
         rot, pos = pose[:3, :3], pose[:3, 3]
         t0 = time.perf_counter()
+        if self.contact_samples_per_face:
+            return self._solve_subvertex(scene, rot, pos, t0)
         s = self.num_columns
         u = np.zeros((s, 3))
         contact = np.zeros(s, dtype=bool)
@@ -347,11 +465,253 @@ class FastMembrane:
             clamped_contact=clamped_contact,
             iterations=iterations,
             solve_time=time.perf_counter() - t0,
+            contact_points=self.outer_reference[contact] + u[contact],
+        )
+
+    # ------------------------------------------------------------------ sub-vertex contact
+    def _face_samples(self, scene: SignedDistance, rot, pos, u):
+        """Faces that may touch the scene and their samples: (faces (Fc,), sensor-frame sample positions
+        (Fc, m, 3) [m], signed distances (Fc, m) [m]).
+
+        A face is skipped when ``min_a phi(y_a) - L_f >= contact_margin`` (L_f its longest deformed edge,
+        which bounds the distance of any of its points to any of its vertices; phi is 1-Lipschitz)."""
+        y = self.outer_reference + u
+        yf = y[self.sample_faces]  # (F, 3, 3)
+        phi_v = scene.distance(y @ rot.T + pos)[self.sample_faces].min(axis=1)
+        edges = np.linalg.norm(yf - np.roll(yf, 1, axis=1), axis=2).max(axis=1)
+        near = np.flatnonzero(phi_v - edges < self.contact_margin)
+        yq = np.einsum("mk,fkd->fmd", self.sample_barycentric, yf[near])
+        phi = scene.distance(yq.reshape(-1, 3) @ rot.T + pos).reshape(near.size, yq.shape[1])
+        return near, yq, phi
+
+    def _exit_along(self, scene: SignedDistance, points, directions, phi) -> np.ndarray:
+        """Exit depth [m] along unit ``directions`` (world) from ``points`` inside the scene.
+
+        Sphere tracing (:meth:`_exit_depth`), then, where it stalled (a point close to a surface that the
+        ray runs along, e.g. just inside a box's side face while pushed toward its top) or did not start
+        (a point on the surface), bisection between the last inside depth and a depth found outside by
+        doubling a 1 mm step (0 when the ray leaves the solid at once)."""
+        t = self._exit_depth(scene, points, directions, phi)
+        # stalled: still inside, or never moved (a point on the surface, whose ray
+        # may run along the face it lies on into the solid)
+        stalled = (scene.distance(points + t[:, None] * directions) < -0.1 * self.tolerance) | (t == 0)
+        if stalled.any():
+            p, d = points[stalled], directions[stalled]
+            lo, step = t[stalled], np.full(int(stalled.sum()), 1.0e-3)
+            hi = lo + step
+            for _ in range(8):
+                inside = scene.distance(p + hi[:, None] * d) < 0
+                if not inside.any():
+                    break
+                lo = np.where(inside, hi, lo)
+                step = np.where(inside, 2 * step, step)
+                hi = np.where(inside, hi + step, hi)
+            for _ in range(30):
+                mid = 0.5 * (lo + hi)
+                inside = scene.distance(p + mid[:, None] * d) < 0
+                lo, hi = np.where(inside, mid, lo), np.where(inside, hi, mid)
+            t[stalled] = hi
+        return t
+
+    def _rows(self, scene, rot, pos, faces, beta, y, u) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Non-penetration rows ``sum_a c_qa w_a >= psi_q`` of penetrating points (module docstring).
+
+        ``faces`` (P,) index :attr:`sample_faces`, ``beta`` (P, 3) are the points' barycentric coordinates and
+        ``y`` (P, 3) their sensor-frame positions at the displacement ``u``. Returns the columns (P, 3), the
+        coefficients ``c_qa = beta_qa (d_q . d_a)`` (P, 3) (0 on the clamped rim) and ``psi_q = w_q + t_q``
+        [m]: the sample's current normal displacement plus its exit depth along its inward direction."""
+        cols = self.sample_faces[faces]
+        d_cols = self.inward[cols]  # (P, 3, 3)
+        d_q = np.einsum("pa,pad->pd", beta, d_cols)
+        d_q /= np.linalg.norm(d_q, axis=1, keepdims=True)
+        x = y @ rot.T + pos
+        phi = scene.distance(x)
+        t = self._exit_along(scene, x, d_q @ rot.T, phi)
+        if self.contact_edge_radius > 0:
+            # within r of another face than the exit face (an edge), the obstacle ramps to 0 at the edge:
+            # psi = t min(1, e / min(r, t / 2)), e = -phi the distance to the nearest face (t cos(theta)
+            # on the exit face, theta its angle to d_q: a face inclined by less than 60 deg keeps psi = t)
+            e = np.maximum(-phi, 0.0)
+            t = t * np.minimum(1.0, e / np.maximum(np.minimum(self.contact_edge_radius, 0.5 * t), 1e-12))
+        coeff = beta * np.maximum(np.einsum("pd,pad->pa", d_q, d_cols), 0.0)
+        coeff[self.clamped[cols]] = 0.0
+        w = (u[cols] * d_cols).sum(axis=2)  # (P, 3) normal displacements of the columns
+        return cols, coeff, (coeff * w).sum(axis=1) + t
+
+    def _solve_subvertex(self, scene: SignedDistance, rot, pos, t0: float) -> FastMembraneState:
+        """Sub-vertex contact: the membrane's normal loads by least-distance programs (module docstring)."""
+        s = self.num_columns
+        m = self.sample_barycentric.shape[0]
+        u = np.zeros((s, 3))
+        load = np.zeros(s)
+        cols, coeff, psi = np.empty((0, 3), dtype=np.int64), np.empty((0, 3)), np.empty(0)
+        sid = np.empty(0, dtype=np.int64)  # sample id (face * m + k) of each row
+        iterations = 0
+        solved = False
+        area = 0.0
+        for iterations in range(1, self.max_iterations + 1):  # noqa: B007 (the count is reported)
+            faces, yq, phi = self._face_samples(scene, rot, pos, u)
+            solved = False
+            # the reference state: every point inside the scene; later passes: points without a row yet
+            # that the deformed membrane pushes into the scene (e.g. a flank moved into a side face)
+            pen = phi < (0.0 if iterations == 1 else -self.tolerance)
+            if iterations > 1:
+                pen &= ~np.isin(faces[:, None] * m + np.arange(m)[None, :], sid)
+            if iterations == 1:  # the obstacle region's area, continuous in the object's pose
+                frac = negative_area_fraction(phi[:, self._sub_triangles]).mean(axis=1)
+                area = float((self.sample_face_area[faces] * frac).sum())
+            if not pen.any():
+                break
+            f, k = np.nonzero(pen)
+            if iterations > 1:  # points added by a later pass count with their area shares
+                area += float(self.sample_area[faces[f], k].sum())
+            c, cc, ps = self._rows(scene, rot, pos, faces[f], self.sample_barycentric[k], yq[f, k], u)
+            keep = cc.sum(axis=1) > 0
+            cols, coeff = np.concatenate([cols, c[keep]]), np.concatenate([coeff, cc[keep]])
+            psi, sid = np.concatenate([psi, ps[keep]]), np.concatenate([sid, (faces[f] * m + k)[keep]])
+            if psi.size == 0:
+                break
+            columns = np.unique(cols[coeff > 0])
+            local = np.searchsorted(columns, cols).clip(max=columns.size - 1)
+            jac = np.zeros((psi.size, columns.size))
+            np.add.at(jac, (np.repeat(np.arange(psi.size), 3), local.ravel()), coeff.ravel())
+            d = self.inward[columns]
+            green = self._green_columns(columns)  # (S, k)
+            chol = np.linalg.cholesky(green[columns] * (d @ d.T))  # C_KK = L L^T
+            lam = least_distance_multipliers(jac @ chol, psi)
+            load = np.zeros(s)
+            load[columns] = jac.T @ lam  # mu_K = J^T lambda >= 0
+            u = green @ (load[columns, None] * d)
+            solved = True
+        if solved:
+            faces, yq, phi = self._face_samples(scene, rot, pos, u)
+        # contact samples: those that penetrated the scene (the obstacle region; at n = 1 the vertex-wise
+        # model's contact set)
+        ids = (faces[:, None] * m + np.arange(m)[None, :]).ravel()
+        touching = np.isin(ids, sid)
+        points = yq.reshape(-1, 3)[touching]
+        phi_v = scene.distance((self.outer_reference + u) @ rot.T + pos)
+        movable = ~self.clamped
+        residual = max(0.0, -float(phi.min()) if phi.size else 0.0)
+        if movable.any():
+            residual = max(residual, -float(phi_v[movable].min()))
+        clamped_contact = bool((phi_v[self.clamped] < 0).any())
+
+        positions = self.reference + np.tile(u, (self.sensor.layers + 1, 1))
+        volume = enclosed_volume(positions, self.sensor.inner_faces, self.sensor.rim_center)
+        dv = max(0.0, self.reference_volume - volume)
+        in_contact = bool(touching.any()) and area > 0
+        cal = self.calibration
+        fn = cal.volume_stiffness * dv + cal.area_pressure * area if in_contact else 0.0
+        force = np.zeros(3)
+        if in_contact:
+            # object normals weighted by area share x obstacle depth (the rim of the contact, psi -> 0,
+            # enters continuously)
+            grad = scene.evaluate(points @ rot.T + pos)[1]
+            order = np.argsort(sid)
+            unique, start = np.unique(sid[order], return_index=True)
+            deepest = np.maximum.reduceat(psi[order], start)
+            where = np.searchsorted(unique, ids[touching])
+            weight = self.sample_area.ravel()[ids[touching]] * np.maximum(deepest[where], 0.0)
+            if not weight.any():
+                weight = self.sample_area.ravel()[ids[touching]]
+            n = (weight[:, None] * grad).sum(axis=0)
+            norm = np.linalg.norm(n)
+            if norm > 0:
+                force = -fn * n / norm
+        return FastMembraneState(
+            positions=positions,
+            column_displacement=u,
+            contact_columns=load > 0,
+            normal_force=float(fn),
+            contact_force=force,
+            displaced_volume=float(dv),
+            contact_area=area,
+            max_displacement=float(np.linalg.norm(u, axis=1).max()),
+            residual_penetration=residual,
+            clamped_contact=clamped_contact,
+            iterations=iterations,
+            solve_time=time.perf_counter() - t0,
+            contact_points=points,
+            column_load=load,
         )
 
     def inner_surface(self, state: FastMembraneState) -> tuple[np.ndarray, np.ndarray]:
         """(vertices, faces) of the deformed inner surface for the depth camera (sensor frame)."""
         return self.sensor.inner_surface(state.positions)
+
+
+def subdivision_points(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Grid points of a uniform n-subdivision of a triangle, their area shares and the sub-triangles.
+
+    Returns the barycentric coordinates ``(i, j, n - i - j) / n`` ((n + 1)(n + 2) / 2, 3), corners first,
+    each point's share of the triangle's area (lumped: one third of each of the n^2 sub-triangles it
+    belongs to; corners 1 / (3 n^2), edge points 1 / n^2, interior points 2 / n^2; they sum to 1; n = 1
+    gives the corners alone, with the lumped vertex areas of the vertex-wise contact) and the n^2
+    sub-triangles as (n^2, 3) indices into the points."""
+    if int(n) < 1:
+        raise ValueError(f"n must be >= 1, got {n}")
+    n = int(n)
+    ij = [(i, j) for i in range(n + 1) for j in range(n + 1 - i)]
+    bary = np.array([(i, j, n - i - j) for i, j in ij], dtype=np.float64) / n
+    corners = (bary == 1.0).any(axis=1)
+    edge = (bary == 0.0).any(axis=1) & ~corners
+    share = np.where(corners, 1.0 / 3.0, np.where(edge, 1.0, 2.0)) / n**2
+    order = np.argsort(~corners, kind="stable")
+    where = {ij[k]: r for r, k in enumerate(order)}
+    sub = [(where[i, j], where[i + 1, j], where[i, j + 1]) for i in range(n) for j in range(n - i)]
+    sub += [
+        (where[i + 1, j], where[i + 1, j + 1], where[i, j + 1])
+        for i in range(n - 1)
+        for j in range(n - 1 - i)
+    ]
+    return bary[order], share[order], np.array(sub, dtype=np.int64)
+
+
+def negative_area_fraction(values) -> np.ndarray:
+    """Fraction of a triangle where the linear interpolation of its corner ``values`` (..., 3) is < 0.
+
+    With the sorted values ``v0 <= v1 <= v2``: 0 if ``v0 >= 0``; ``v0^2 / ((v0 - v1)(v0 - v2))`` if only
+    ``v0 < 0``; ``1 - v2^2 / ((v2 - v0)(v2 - v1))`` if only ``v2 >= 0``; 1 if all are negative. It is
+    continuous in the values, so an area measured with it moves continuously with the object."""
+    v = np.sort(np.asarray(values, dtype=np.float64), axis=-1)
+    v0, v1, v2 = v[..., 0], v[..., 1], v[..., 2]
+    out = np.where(v2 < 0, 1.0, 0.0)
+    one = (v0 < 0) & (v1 >= 0)
+    two = (v1 < 0) & (v2 >= 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.where(one, v0**2 / ((v0 - v1) * (v0 - v2)), out)
+        out = np.where(two, 1.0 - v2**2 / ((v2 - v0) * (v2 - v1)), out)
+    return out
+
+
+def least_distance_multipliers(matrix, bound) -> np.ndarray:
+    """Multipliers ``lambda >= 0`` of the least-distance program ``min |z|^2 / 2`` s.t. ``E z >= f``.
+
+    ``E`` is ``matrix`` (P, k), ``f`` is ``bound`` (P,); the solution is ``z = E^T lambda``. Lawson and
+    Hanson's reduction to non-negative least squares (Solving Least Squares Problems, ch. 23):
+    ``y = argmin_{y >= 0} |[E^T; f^T] y - e_{k+1}|`` with residual r, then ``z = -r_{1:k} / r_{k+1}`` and
+    ``lambda = y / (-r_{k+1})``. ``f`` is scaled to unit maximum first (the program is homogeneous in
+    ``f``). Raises ``ValueError`` when the constraints are inconsistent (``r = 0``).
+    """
+    from scipy.optimize import nnls
+
+    e = np.asarray(matrix, dtype=np.float64)
+    f = np.asarray(bound, dtype=np.float64)
+    if e.ndim != 2 or f.shape != (e.shape[0],):
+        raise ValueError(f"need matrix (P, k) and bound (P,), got {e.shape} and {f.shape}")
+    scale = float(np.abs(f).max()) if f.size else 0.0
+    if scale == 0.0 or not (f > 0).any():
+        return np.zeros(f.size)  # z = 0 is feasible
+    k = e.shape[1]
+    system = np.vstack([e.T, f[None, :] / scale])
+    target = np.zeros(k + 1)
+    target[-1] = 1.0
+    y, _ = nnls(system, target, maxiter=50 * max(f.size, 1))
+    r = system @ y - target
+    if not -r[-1] > 1e-12:
+        raise ValueError("inconsistent contact constraints (least-distance program infeasible)")
+    return y * (scale / -r[-1])
 
 
 # ----------------------------------------------------------------------------- calibration
@@ -548,6 +908,8 @@ def run_fem_calibration(
     sphere_tilt_deg: float = 25.0,
     pipe_turn_deg: float = 30.0,
     pipe_offset: float = 0.01,
+    contact_samples_per_face: int = 0,
+    contact_edge_radius: float = 0.0,
 ) -> dict:
     """Calibrate the fast model against the sealed FEM sensor and report the errors (JSON-ready).
 
@@ -557,7 +919,9 @@ def run_fem_calibration(
     ``levels`` x ``max_depth`` [m]. Fast model: the ``fast_cap_divisions`` membrane FEM-inflated to the same
     gas state. The fit (:func:`calibrate`) uses all samples; a second fit on the spheres only is evaluated on
     the pipes (cross-shape generalization). The report's ``calibration`` goes into
-    :data:`DEFAULT_CALIBRATION`.
+    :data:`DEFAULT_CALIBRATION`. ``contact_samples_per_face``, ``contact_edge_radius``: the fast model's
+    contact (:class:`FastMembrane`); ``fit_default_constants`` reports the errors of
+    :data:`DEFAULT_CALIBRATION` unchanged on that model.
     """
     from scipy.spatial.transform import Rotation
 
@@ -618,9 +982,22 @@ def run_fem_calibration(
 
     fast_sensor = build_membrane(cap_divisions=fast_cap_divisions, layers=2)
     inflated = make_simulator(fast_sensor, sphere, gauge_pressure, False, batch_size=1, intrinsics=None)
-    model = FastMembrane(fast_sensor, inflated.reference.positions)
+    model = FastMembrane(
+        fast_sensor,
+        inflated.reference.positions,
+        contact_samples_per_face=contact_samples_per_face,
+        contact_edge_radius=contact_edge_radius,
+    )
     camera = DepthCamera(intrinsics)
     cal, rows = calibrate(model, spheres + pipes, camera)
+    default = model.with_calibration(DEFAULT_CALIBRATION)
+    _, rows_default = calibrate(
+        default, spheres + pipes, camera, screening_lengths=[DEFAULT_CALIBRATION.screening_length]
+    )
+    rows_default = [
+        {**row, "model_force": default.solve(smp["scene"], np.eye(4)).normal_force}
+        for smp, row in zip(spheres + pipes, rows_default)
+    ]
     cal_sph, _ = calibrate(model, spheres, camera)
     # the sphere-only constants on the pipes: depth errors from calibrate() at the fixed screening length,
     # forces from the fixed model (calibrate() refits the stiffnesses)
@@ -639,6 +1016,7 @@ def run_fem_calibration(
             "area_pressure": cal.area_pressure,
         },
         "fit_all": calibration_summary(rows),
+        "fit_default_constants": calibration_summary(rows_default),
         "cross_shape_fit_spheres_test_pipes": calibration_summary(cross),
         "samples": rows,
         "fem": {
@@ -656,6 +1034,11 @@ def run_fem_calibration(
             "depths_mm": [max_depth * 1e3 * lv for lv in levels],
             "wall_time_s": t_fem,
         },
-        "fast_model": {"cap_divisions": fast_cap_divisions, "mean_solve_time_s": float(np.mean(timing))},
+        "fast_model": {
+            "cap_divisions": fast_cap_divisions,
+            "contact_samples_per_face": contact_samples_per_face,
+            "contact_edge_radius_m": contact_edge_radius,
+            "mean_solve_time_s": float(np.mean(timing)),
+        },
         "total_wall_time_s": time.perf_counter() - t0,
     }
