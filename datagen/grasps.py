@@ -78,6 +78,7 @@ def main(cfg: DictConfig) -> None:
             stabilization_release=cfg.stabilization_release,
             force_maximum_runaway=cfg.force_maximum_runaway,
             stabilization_relax=cfg.stabilization_relax,
+            stabilization_relax_decay=cfg.stabilization_relax_decay,
         ),
         reject_inverted=cfg.reject_inverted,
         overwrite=cfg.overwrite,
