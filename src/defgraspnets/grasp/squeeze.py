@@ -204,20 +204,20 @@ def squeeze_solver_options(**overrides) -> fem.SolverOptions:
     are no force maximum stay NOT_CONVERGED. The data sets leave the ramp out either way; its fields up
     to the last force reached do not change. ``force_maximum_runaway=0.0`` turns it off.
 
-    A stiff curved object whose first contact is a point must still roll into the grasp: its stabilized
-    first increment converges, but the released solve stalls on the near-free rigid mode the springs held
+    A stiff curved object whose first contact is a point must still roll into the grasp: its stabilized first
+    increment converges, but the released solve stalls on the near-free rigid mode the springs held
     (``benchmarks/squeeze_torus_first_step_cpu.md``). Since session 39 the released solve's failure is
     followed by up to 40 re-referenced stabilized solves whose springs weaken x0.25 from one to the next
     (``stabilization_relax=40``, ``stabilization_relax_decay=0.25``: a proximal-point loop that converges
-    superlinearly), then a new release; ramps whose releases all converge are unchanged bit for bit.
-    Measured on the 2-core CPU ("direct", the step's 200-iteration budget, ``benchmarks/squeeze_relax_cpu.md``):
-    the first force step of the 997-vertex fTetWild torus at 10 MPa, grasps 20-59, 24 -> 33 of 40 converge
-    with 5034 -> 3836 Newton iterations (constant springs, session 38: 29); annulus_ro45_ri35_h20 (1023
-    vertices, 4.64 MPa), grasps 0-24, 0-1.5 N in 5 steps: 13 -> 17 of 25; the 268-vertex cube, grasps 0, 4,
-    ..., 96, 0-15 N in 50 steps: 10 kPa and 100 kPa bit for bit, 10 MPa 24 of 25 either way (grasp 4 gained,
-    grasp 96, which bisection saves, lost; 5174 -> 4935 Newton iterations). Four grasps that bisection saves
-    end on another path of the frictional problem (e.g. the annulus' grasp 5: pad travel 1.487 instead of
-    1.451 mm at 1.5 N). ``stabilization_relax=0`` turns it off (the data sets before session 39).
+    superlinearly), then a new release; ramps whose releases all converge are unchanged bit for bit. Measured
+    on the 2-core CPU ("direct", the step's 200-iteration budget, ``benchmarks/squeeze_relax_cpu.md``): the
+    first force step of the 997-vertex fTetWild torus at 10 MPa, grasps 20-59, 24 -> 33 of 40 converge with
+    5034 -> 3836 Newton iterations (constant springs, session 38: 29); annulus_ro45_ri35_h20 (1023 vertices,
+    4.64 MPa), grasps 0-24, 0-1.5 N in 5 steps: 13 -> 17 of 25; the 268-vertex cube, grasps 0, 4, ..., 96,
+    0-15 N in 50 steps: 10 kPa and 100 kPa bit for bit, 10 MPa 24 of 25 either way (grasp 4 gained, grasp 96,
+    which bisection saves, lost; 5174 -> 4935 Newton iterations). Four grasps that bisection saves end on
+    another path of the frictional problem (e.g. the annulus' grasp 5: pad travel 1.487 instead of 1.451 mm at
+    1.5 N). ``stabilization_relax=0`` turns it off (the data sets before session 39).
     """
     overrides = {key: value for key, value in overrides.items() if value is not None}
     return fem.SolverOptions(
