@@ -241,16 +241,17 @@ class SolverOptions:
             another path), and grasp 96, which plain bisection saves after a failed release, spends its budget
             in the loop and fails (``RELAX_BUDGET_SHARE`` 0.5 saves 96 and loses 4; 0.75 the reverse).
         stabilization_relax_decay: d in (0, 1], the springs' fraction kept from one proximal solve of
-        ``stabilization_relax`` to the next (1, the default: constant springs). Each converged proximal solve
-        that still needs another weakens the problem's springs by d (down to ``RELAX_SPRING_FLOOR`` of the
-        full springs); a proximal solve with weakened springs that fails goes back to the last converged one
-        with springs 1 / d^2 stiffer (capped at full) instead of giving up. A proximal-point iteration whose
-        regularization shrinks converges superlinearly where constant springs creep: the springs' force, the
-        released problem's residual, is measured with the springs of the solve. Measured (session 39, 2-core
-        CPU, "direct", squeeze defaults, ``benchmarks/squeeze_relax_cpu.md``): the first force step of the
-        1023-vertex fTetWild annulus_ro45_ri35_h20 at 4.64 MPa, grasp 3: constant springs reach the
-        equilibrium (0.38 mm further on) in 176 solves and 847 Newton iterations (no budget), d = 0.5 in 9
-        solves and 320, d = 0.25 in 6 and 281.
+            ``stabilization_relax`` to the next (1, the default: constant springs). Each converged proximal
+            solve that still needs another weakens the problem's springs by d (down to ``RELAX_SPRING_FLOOR``
+            of the full springs); a proximal solve with weakened springs that fails goes back to the last
+            converged one with springs 1 / d^2 stiffer (capped at full) instead of giving up. A proximal-point
+            iteration whose regularization shrinks converges superlinearly where constant springs creep: the
+            springs' force, the released problem's residual, is measured with the springs of the solve.
+            Measured (session 39, 2-core CPU, "direct", squeeze defaults,
+            ``benchmarks/squeeze_relax_cpu.md``): the first force step of the 1023-vertex fTetWild
+            annulus_ro45_ri35_h20 at 4.64 MPa, grasp 3: constant springs reach the equilibrium (0.38 mm
+            further on) in 176 solves and 847 Newton iterations (no budget), d = 0.5 in 9 solves and 320, d =
+            0.25 in 6 and 281.
         exact_hessian: once a problem's Newton step is accepted in full and lowers the residual, its next
             iterations use the exact elastic Hessian (signed element eigenvalues) instead of the PSD-projected
             one: near a stable equilibrium the assembled Hessian is positive definite even where compressed
