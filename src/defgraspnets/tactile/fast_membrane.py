@@ -440,22 +440,42 @@ class FastMembrane:
         residual = float(max(0.0, -phi[~self.clamped].min())) if (~self.clamped).any() else 0.0
         clamped_contact = bool((phi[self.clamped] < 0).any())
 
+        return self._state(
+            u,
+            contact_columns=contact,
+            area=float(self.outer_area[contact].sum()),
+            in_contact=bool(contact.any()),
+            normal_weights=self.outer_area[contact],
+            normals=grad[contact],
+            residual=residual,
+            clamped_contact=clamped_contact,
+            iterations=iterations,
+            t0=t0,
+            contact_points=self.outer_reference[contact] + u[contact],
+        )
+
+    def _state(
+        self, u, contact_columns, area, in_contact, normal_weights, normals, residual, clamped_contact,
+        iterations, t0, contact_points, column_load=None,
+    ) -> FastMembraneState:  # fmt: skip
+        """The state of column displacements ``u``: the swept shell's positions, the displaced gas volume
+        and the force model ``F_n = k_V dV + k_A A_C``, directed against the object normals (``normals``,
+        world frame) averaged with ``normal_weights`` over the contact."""
         positions = self.reference + np.tile(u, (self.sensor.layers + 1, 1))
         volume = enclosed_volume(positions, self.sensor.inner_faces, self.sensor.rim_center)
         dv = max(0.0, self.reference_volume - volume)
-        area = float(self.outer_area[contact].sum())
         cal = self.calibration
-        fn = cal.volume_stiffness * dv + cal.area_pressure * area if contact.any() else 0.0
+        fn = cal.volume_stiffness * dv + cal.area_pressure * area if in_contact else 0.0
         force = np.zeros(3)
-        if contact.any():
-            n = (self.outer_area[contact, None] * grad[contact]).sum(axis=0)
+        if in_contact:
+            n = (normal_weights[:, None] * normals).sum(axis=0)
             norm = np.linalg.norm(n)
             if norm > 0:
                 force = -fn * n / norm  # the membrane pushes the object against its outward normal
         return FastMembraneState(
             positions=positions,
             column_displacement=u,
-            contact_columns=contact,
+            contact_columns=contact_columns,
             normal_force=float(fn),
             contact_force=force,
             displaced_volume=float(dv),
@@ -465,7 +485,8 @@ class FastMembrane:
             clamped_contact=clamped_contact,
             iterations=iterations,
             solve_time=time.perf_counter() - t0,
-            contact_points=self.outer_reference[contact] + u[contact],
+            contact_points=contact_points,
+            column_load=column_load,
         )
 
     # ------------------------------------------------------------------ sub-vertex contact
@@ -597,13 +618,8 @@ class FastMembrane:
             residual = max(residual, -float(phi_v[movable].min()))
         clamped_contact = bool((phi_v[self.clamped] < 0).any())
 
-        positions = self.reference + np.tile(u, (self.sensor.layers + 1, 1))
-        volume = enclosed_volume(positions, self.sensor.inner_faces, self.sensor.rim_center)
-        dv = max(0.0, self.reference_volume - volume)
         in_contact = bool(touching.any()) and area > 0
-        cal = self.calibration
-        fn = cal.volume_stiffness * dv + cal.area_pressure * area if in_contact else 0.0
-        force = np.zeros(3)
+        weight, grad = np.zeros(0), np.zeros((0, 3))
         if in_contact:
             # object normals weighted by area share x obstacle depth (the rim of the contact, psi -> 0,
             # enters continuously)
@@ -615,23 +631,17 @@ class FastMembrane:
             weight = self.sample_area.ravel()[ids[touching]] * np.maximum(deepest[where], 0.0)
             if not weight.any():
                 weight = self.sample_area.ravel()[ids[touching]]
-            n = (weight[:, None] * grad).sum(axis=0)
-            norm = np.linalg.norm(n)
-            if norm > 0:
-                force = -fn * n / norm
-        return FastMembraneState(
-            positions=positions,
-            column_displacement=u,
+        return self._state(
+            u,
             contact_columns=load > 0,
-            normal_force=float(fn),
-            contact_force=force,
-            displaced_volume=float(dv),
-            contact_area=area,
-            max_displacement=float(np.linalg.norm(u, axis=1).max()),
-            residual_penetration=residual,
+            area=area,
+            in_contact=in_contact,
+            normal_weights=weight,
+            normals=grad,
+            residual=residual,
             clamped_contact=clamped_contact,
             iterations=iterations,
-            solve_time=time.perf_counter() - t0,
+            t0=t0,
             contact_points=points,
             column_load=load,
         )
