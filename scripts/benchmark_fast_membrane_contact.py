@@ -2,6 +2,7 @@
 
     python scripts/benchmark_fast_membrane_contact.py
     python scripts/benchmark_fast_membrane_contact.py yaw_steps=41 'variants=[[0,0.0],[10,0.003]]'
+    python scripts/benchmark_fast_membrane_contact.py 'variants=[[0,0.0]]' 'weightings=[count,depth]'
 
 Config: configs/benchmark_fast_membrane_contact.yaml. For each contact setting
 (:class:`~defgraspnets.tactile.fast_membrane.FastMembrane` ``contact_samples_per_face``,
@@ -12,7 +13,10 @@ Config: configs/benchmark_fast_membrane_contact.yaml. For each contact setting
    a few lateral offsets; the reading is the angle of ``e_1`` of the observed contact core
    (:meth:`TactileSimulation.observe` -> :func:`~defgraspnets.tactile.lfd.features.tactile_features`, the
    LfD's path); reported: |reading - yaw| (median, 90th percentile, max), the readings that did not
-   increase with the yaw and the number of distinct readings;
+   increase with the yaw and the number of distinct readings, for each feature weighting of ``weightings``
+   (``count``: every core point once, ``depth``: weighted by its indentation beyond the core cut, see
+   :class:`~defgraspnets.tactile.contour_sim.TactileSimulation` ``point_weighting``; the first is the
+   variant's ``yaw_error_deg`` etc., all under ``yaw_by_weighting``);
 2. a sphere pressed on the sensor axis: force against depth, the largest increment over the median one and
    the lateral share of the contact force (0 for a symmetric contact);
 3. the solve time per state (median over the readings of 1).
@@ -47,7 +51,8 @@ def main(cfg: DictConfig) -> dict:
     from defgraspnets.tactile.sdf import SphereSDF
 
     t0 = time.perf_counter()
-    sim = build_fast_simulation(**cfg.sensor)
+    sim = build_fast_simulation(**cfg.sensor, point_weighting="depth")  # obs.weights: the depth ramp
+    weightings = list(cfg.weightings)
     base = sim.model
     palm = PalmGeometry.from_simulation(sim)
     world = ManipulationWorld()
@@ -61,21 +66,43 @@ def main(cfg: DictConfig) -> dict:
             contact_samples_per_face=int(samples), contact_edge_radius=float(radius),
         )  # fmt: skip
         t1 = time.perf_counter()
-        readings, times = [], []
+        readings, times = {w: [] for w in weightings}, []
         for ox, oy in cfg.offsets:
-            row = []
+            row = {w: [] for w in weightings}
             for yaw in yaws:
                 obj = np.array([cfg.prism_center[0], cfg.prism_center[1], np.deg2rad(yaw)])
                 pose = palm.pose([obj[0] + ox, obj[1] + oy, PRISM.height - cfg.indentation])
                 obs = sim.observe(world.scene(PRISM, obj), pose)
                 times.append(obs.state.solve_time)
-                e1 = tactile_features(obs.points, pose).e1
-                angle = np.rad2deg(np.arctan2(e1[1], e1[0]))
-                row.append((angle + 90.0) % 180.0 - 90.0)  # orientation modulo 180 deg
-            readings.append(row)
-        reading = np.array(readings)
-        error = np.abs(reading - yaws[None, :])
-        steps = np.diff(reading, axis=1)
+                for w in weightings:
+                    e1 = tactile_features(obs.points, pose, weights=obs.weights if w == "depth" else None).e1
+                    angle = np.rad2deg(np.arctan2(e1[1], e1[0]))
+                    row[w].append((angle + 90.0) % 180.0 - 90.0)  # orientation modulo 180 deg
+            for w in weightings:
+                readings[w].append(row[w])
+        by_weighting = {}
+        for w in weightings:
+            reading = np.array(readings[w])
+            error = np.abs(reading - yaws[None, :])
+            steps = np.diff(reading, axis=1)
+            by_weighting[w] = {
+                "yaw_error_deg": {
+                    "median": float(np.median(error)),
+                    "p90": float(np.percentile(error, 90)),
+                    "max": float(error.max()),
+                },
+                "yaw_steps_not_increasing": int((steps <= 0.01).sum()),
+                "yaw_steps": int(steps.size),
+                "distinct_readings": int(len(np.unique(np.round(reading, 2)))),
+                "readings": int(reading.size),
+                "yaw_readings_deg": reading.tolist(),
+            }
+            b = by_weighting[w]
+            log.info(
+                "m=%d r=%.1f mm, %s weighting: yaw error median %.2f p90 %.2f max %.2f deg, %d/%d steps not "
+                "increasing, %d distinct readings", samples, radius * 1e3, w, *b["yaw_error_deg"].values(),
+                b["yaw_steps_not_increasing"], b["yaw_steps"], b["distinct_readings"],
+            )  # fmt: skip
         forces, lateral = [], []
         for d in depths:
             sphere = SphereSDF((0.0, 0.0, top + cfg.sphere_radius - d), cfg.sphere_radius)
@@ -87,15 +114,8 @@ def main(cfg: DictConfig) -> dict:
             {
                 "contact_samples_per_face": int(samples),
                 "contact_edge_radius_m": float(radius),
-                "yaw_error_deg": {
-                    "median": float(np.median(error)),
-                    "p90": float(np.percentile(error, 90)),
-                    "max": float(error.max()),
-                },
-                "yaw_steps_not_increasing": int((steps <= 0.01).sum()),
-                "yaw_steps": int(steps.size),
-                "distinct_readings": int(len(np.unique(np.round(reading, 2)))),
-                "readings": int(reading.size),
+                **{k: v for k, v in by_weighting[weightings[0]].items() if k != "yaw_readings_deg"},
+                "yaw_by_weighting": by_weighting,
                 "sphere_force_N": [float(f) for f in forces],
                 "sphere_force_increment_max_over_median": float(inc.max() / np.median(inc)),
                 "sphere_force_increment_min_N": float(inc.min()),
@@ -107,11 +127,10 @@ def main(cfg: DictConfig) -> dict:
         )
         r = rows[-1]
         log.info(
-            "m=%d r=%.1f mm: yaw error median %.2f p90 %.2f max %.2f deg, %d/%d steps not increasing, sphere "
-            "increment max/median %.2f (min %.3f N), lateral %.3f, solve %.1f ms",
-            samples, radius * 1e3, *r["yaw_error_deg"].values(), r["yaw_steps_not_increasing"],
-            r["yaw_steps"], r["sphere_force_increment_max_over_median"], r["sphere_force_increment_min_N"],
-            r["sphere_lateral_force_share_max"], 1e3 * r["solve_time_median_s"],
+            "m=%d r=%.1f mm: sphere increment max/median %.2f (min %.3f N), lateral %.3f, solve %.1f ms",
+            samples, radius * 1e3, r["sphere_force_increment_max_over_median"],
+            r["sphere_force_increment_min_N"], r["sphere_lateral_force_share_max"],
+            1e3 * r["solve_time_median_s"],
         )  # fmt: skip
     report = {
         "sensor": dict(cfg.sensor),

@@ -10,6 +10,7 @@ import pytest
 
 from defgraspnets.tactile.contour import ContourParameters
 from defgraspnets.tactile.contour_sim import (
+    TactileSimulation,
     build_fast_simulation,
     indented_points,
     path_progress,
@@ -228,6 +229,12 @@ def test_indented_points_keep_the_contact_core_and_reject_bad_input():
     assert indented_points(pts, depth, ref, 1e-3).shape == (2, 3)
     core = indented_points(pts, depth, ref, 1e-3, core_fraction=0.6)
     np.testing.assert_allclose(core, [[0.0, 0.0, 0.19]])
+    # the weight of the depth weighting: indentation beyond the cut max(threshold, 0.4 x 10 mm) = 4 mm
+    pts2, excess = indented_points(pts, depth, ref, 1e-3, core_fraction=0.4, return_excess=True)
+    assert pts2.shape == (2, 3)
+    np.testing.assert_allclose(excess, [0.006, 0.001], atol=1e-12)
+    pts0, excess0 = indented_points(pts, ref, ref, return_excess=True)
+    assert pts0.shape == (0, 3) and excess0.shape == (0,)
     assert indented_points(pts, ref, ref).shape == (0, 3)
     with pytest.raises(ValueError):
         indented_points(pts, depth, ref, 1e-3, core_fraction=1.0)
@@ -263,3 +270,19 @@ def test_script_writes_report_and_figures(tmp_path):
     assert report["force_proxy_correlation"]["samples"] > 0
     for name in ("trajectories.png", "force_proxy.png"):
         assert (tmp_path / name).stat().st_size > 1000
+
+
+def test_depth_point_weighting_weights_the_core_by_its_indentation_beyond_the_cut(sim):
+    top = pole_height(sim)
+    pipe = TubeSDF(np.array([[-0.06, 0, top + 0.00635 - 0.004], [0.06, 0, top + 0.00635 - 0.004]]), 0.00635)
+    counted = sim.observe(pipe, np.eye(4))
+    assert counted.weights is None and len(counted.points) > 10  # the default: every point counts once
+    weighted = TactileSimulation(sim.model, sim.camera, sim.deformation_threshold, sim.core_fraction, "depth")
+    obs = weighted.observe(pipe, np.eye(4))
+    np.testing.assert_array_equal(obs.points, counted.points)
+    ind = (weighted.reference_depth - obs.depth)[np.isfinite(obs.depth)]
+    cut = max(sim.deformation_threshold, sim.core_fraction * ind.max())
+    assert obs.weights.shape == (len(obs.points),) and (obs.weights > 0).all()
+    assert obs.weights.max() == pytest.approx(ind.max() - cut, rel=1e-9)
+    with pytest.raises(ValueError, match="point_weighting"):
+        TactileSimulation(sim.model, sim.camera, point_weighting="area")

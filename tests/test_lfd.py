@@ -7,6 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 from scipy.stats import multivariate_normal
 
+from defgraspnets.tactile.contour_sim import indented_points
 from defgraspnets.tactile.lfd.features import (
     FEATURE_SIZES,
     MinMaxNormalizer,
@@ -275,6 +276,54 @@ def test_features_of_an_elongated_contact_in_the_world_frame():
     assert f.vector().shape == (9,)
     assert sum(FEATURE_SIZES.values()) == 15
     assert orient_principal_vectors(np.array([0.1, -0.9, 0.2])) == pytest.approx([-0.1, 0.9, -0.2])
+
+
+def test_uniform_weights_give_the_unweighted_features_and_bad_weights_are_rejected():
+    rng = np.random.default_rng(1)
+    local = rng.normal(size=(500, 3)) * [0.02, 0.005, 0.001] + [0.0, 0.0, 0.07]
+    t = pose(Rotation.from_euler("zyx", [-40, 5, 180], degrees=True).as_matrix(), [0.1, 0.0, 0.3])
+    f = tactile_features(local, t)
+    for w in (np.ones(500), np.full(500, 3.7)):  # the scale of the weights does not matter
+        g = tactile_features(local, t, weights=w)
+        assert g.in_contact and g.n_points == 500
+        np.testing.assert_allclose(g.centroid, f.centroid, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(g.principal_variances, f.principal_variances, rtol=1e-12, atol=1e-20)
+        np.testing.assert_allclose(g.principal_vectors, f.principal_vectors, rtol=0, atol=1e-12)
+    # weights move the centroid toward the heavy points (weighted mean)
+    w = np.where(local[:, 0] > 0, 1.0, 0.0)
+    g = tactile_features(local, t, weights=w)
+    np.testing.assert_allclose(g.centroid, t[:3, :3] @ local[w > 0].mean(0) + t[:3, 3], atol=1e-12)
+    assert not tactile_features(local, t, weights=np.zeros(500)).in_contact  # no weight: no contact
+    for bad in (np.ones(499), -np.ones(500), np.full(500, np.nan)):
+        with pytest.raises(ValueError, match="weights"):
+            tactile_features(local, t, weights=bad)
+
+
+def _synthetic_core_yaw(yaw_deg: float, weighted: bool) -> float:
+    """e1 angle [deg] of an elliptic-paraboloid indentation (24 x 16 mm at the rim, 5 mm deep) rotated by
+    ``yaw_deg``, seen on a fixed 2 mm pixel grid; the contact core is the pixels indented > 0.7 x the
+    deepest (as the LfD sensor), weighted by their indentation beyond that cut or counted once."""
+    g = np.arange(-0.02, 0.02 + 1e-9, 0.002)
+    x, y = np.meshgrid(g, g)
+    th = np.deg2rad(yaw_deg)
+    u, v = np.cos(th) * x + np.sin(th) * y, -np.sin(th) * x + np.cos(th) * y
+    ind = 0.005 * np.clip(1.0 - (u / 0.012) ** 2 - (v / 0.008) ** 2, 0.0, None)
+    ref = np.full(x.shape, 0.05)
+    pts, excess = indented_points(np.dstack([x, y, ref - ind]), ref - ind, ref, 1e-3, 0.7, return_excess=True)
+    e1 = tactile_features(pts, np.eye(4), weights=excess if weighted else None).e1
+    return float((np.rad2deg(np.arctan2(e1[1], e1[0])) + 90.0) % 180.0 - 90.0)
+
+
+def test_depth_weighted_e1_follows_a_rotating_indentation_continuously():
+    yaws = np.arange(0.0, 10.01, 0.25)
+    counted = np.array([_synthetic_core_yaw(y, False) for y in yaws])
+    weighted = np.array([_synthetic_core_yaw(y, True) for y in yaws])
+    # counted once, the core's outline follows the pixels: e1 reads the yaw in steps (a staircase)
+    assert len(np.unique(np.round(counted, 3))) <= 5
+    assert np.abs(counted - yaws).max() > 3.0
+    # weighted by the indentation beyond the cut (0 at the outline), e1 turns with the indentation
+    assert np.all(np.diff(weighted) > 0.05)
+    assert np.abs(weighted - yaws).max() < 1.5
 
 
 def test_no_contact_defaults_are_the_camera_frame_in_the_world():

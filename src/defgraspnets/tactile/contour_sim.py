@@ -57,6 +57,9 @@ from defgraspnets.tactile.contour import (
 from defgraspnets.tactile.fast_membrane import FastMembrane, FastMembraneState, contact_depth_proxy
 from defgraspnets.tactile.sdf import BoxSDF, BumpyCylinderSDF, SignedDistance, TubeSDF, UnionSDF
 
+#: :class:`TactileSimulation` ``point_weighting`` choices.
+POINT_WEIGHTINGS = ("count", "depth")
+
 __all__ = [
     "ContourRun",
     "ContourScene",
@@ -117,8 +120,13 @@ def housing_points(dimensions, rings: int = 12, per_ring: int = 48) -> np.ndarra
 
 
 def indented_points(
-    points, depth, reference_depth, threshold: float = 1.0e-3, core_fraction: float = 0.0
-) -> np.ndarray:
+    points,
+    depth,
+    reference_depth,
+    threshold: float = 1.0e-3,
+    core_fraction: float = 0.0,
+    return_excess: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Points of an organized cloud pushed toward the camera by more than ``threshold`` [m] and by more than
     ``core_fraction`` times the largest indentation of the reading (the contact core).
 
@@ -129,9 +137,11 @@ def indented_points(
         threshold: indentation depth above which a pixel belongs to the contact region [m].
         core_fraction: in [0, 1); keep only pixels indented by more than this fraction of the maximum
             indentation (0: the plain threshold).
+        return_excess: also return each point's indentation beyond the cut (``max(threshold, core_fraction
+            x max indentation)``), (N,) [m], > 0: a weight that falls continuously to 0 at the outline.
 
     Returns:
-        (N, 3) points [m], N may be 0.
+        (N, 3) points [m], N may be 0; with ``return_excess`` the pair (points, excess).
     """
     p = np.asarray(points, dtype=np.float64)
     d = np.asarray(depth, dtype=np.float64)
@@ -148,9 +158,10 @@ def indented_points(
     ind = d0 - d
     ok = np.isfinite(ind) & np.isfinite(p).all(axis=2)
     if not ok.any():
-        return np.empty((0, 3))
+        return (np.empty((0, 3)), np.empty(0)) if return_excess else np.empty((0, 3))
     cut = max(threshold, core_fraction * float(ind[ok].max()))
-    return p[ok & (ind > cut)]
+    keep = ok & (ind > cut)
+    return (p[keep], ind[keep] - cut) if return_excess else p[keep]
 
 
 @dataclass(frozen=True)
@@ -167,6 +178,8 @@ class Observation:
         housing_contact: the rigid housing (or clamped rim) touches the scene.
         state: the fast model's state.
         depth: (H, W) depth image [m].
+        weights: (N,) weight of each point for the features (``TactileSimulation.point_weighting``), None:
+            every point counts once.
     """
 
     points: np.ndarray
@@ -176,6 +189,7 @@ class Observation:
     housing_contact: bool
     state: FastMembraneState
     depth: np.ndarray = field(repr=False)
+    weights: np.ndarray | None = field(default=None, repr=False)
 
 
 class TactileSimulation:
@@ -187,6 +201,10 @@ class TactileSimulation:
         deformation_threshold: indentation above which a pixel is deformed [m] (Algorithm 1).
         core_fraction: the observed cloud keeps the pixels indented by more than this fraction of the
             reading's largest indentation (:func:`indented_points`; 0 keeps every indented pixel).
+        point_weighting: ``"count"``: every observed point counts once in the features
+            (``Observation.weights`` None); ``"depth"``: each point is weighted by its indentation beyond the
+            core cut (:func:`indented_points` ``return_excess``), a ramp that is 0 at the core's outline, so
+            pixels entering or leaving the core do not move the features in steps.
     """
 
     def __init__(
@@ -195,12 +213,16 @@ class TactileSimulation:
         camera: DepthCamera,
         deformation_threshold: float = 1.0e-3,
         core_fraction: float = 0.5,
+        point_weighting: str = "count",
     ):
         if not deformation_threshold > 0:
             raise ValueError(f"deformation_threshold must be > 0 m, got {deformation_threshold}")
         if not 0.0 <= core_fraction < 1.0:
             raise ValueError(f"core_fraction must lie in [0, 1), got {core_fraction}")
+        if point_weighting not in POINT_WEIGHTINGS:
+            raise ValueError(f"point_weighting must be one of {POINT_WEIGHTINGS}, got {point_weighting!r}")
         self.core_fraction = float(core_fraction)
+        self.point_weighting = point_weighting
         self.model = model
         self.camera = camera
         self.deformation_threshold = float(deformation_threshold)
@@ -218,12 +240,20 @@ class TactileSimulation:
     ) -> Observation:
         state = self.model.solve(scene, sensor_pose)
         frame = self.camera.render(*self.model.inner_surface(state), rng=rng)
-        pts = indented_points(
-            frame.points, frame.depth, self.reference_depth, self.deformation_threshold, self.core_fraction
+        pts, excess = indented_points(
+            frame.points,
+            frame.depth,
+            self.reference_depth,
+            self.deformation_threshold,
+            self.core_fraction,
+            return_excess=True,
         )
+        weights = excess if self.point_weighting == "depth" else None
         proxy = contact_depth_proxy(frame.depth, self.reference_depth, self.deformation_threshold)
         housing = state.clamped_contact or self.housing_contact(scene, sensor_pose)
-        return Observation(pts, proxy, state.normal_force, state.in_contact, housing, state, frame.depth)
+        return Observation(
+            pts, proxy, state.normal_force, state.in_contact, housing, state, frame.depth, weights
+        )
 
 
 @dataclass(frozen=True)
@@ -428,6 +458,7 @@ def build_fast_simulation(
     core_fraction: float = 0.5,
     contact_samples_per_face: int = 0,
     contact_edge_radius: float = 0.0,
+    point_weighting: str = "count",
 ) -> TactileSimulation:
     """The membrane mesh FEM-inflated to ``gauge_pressure`` [Pa], the calibrated fast model on it and the
     interior camera (pico flexx at ``camera_scale`` of its resolution): the closed loop's sensor
@@ -435,7 +466,8 @@ def build_fast_simulation(
     its three constants, None for the default; ``deformation_threshold``, ``core_fraction``: see
     :class:`TactileSimulation`;
     ``contact_samples_per_face`` (0: vertex-wise contact; (n + 1)(n + 2) / 2: sub-vertex contact) and
-    ``contact_edge_radius`` [m]: see :class:`~defgraspnets.tactile.fast_membrane.FastMembrane`)."""
+    ``contact_edge_radius`` [m]: see :class:`~defgraspnets.tactile.fast_membrane.FastMembrane`;
+    ``point_weighting``: see :class:`TactileSimulation`)."""
     from defgraspnets.tactile.camera import PICO_FLEXX
     from defgraspnets.tactile.datasets import make_simulator
     from defgraspnets.tactile.fast_membrane import DEFAULT_CALIBRATION, FastMembraneCalibration
@@ -453,9 +485,8 @@ def build_fast_simulation(
         contact_samples_per_face=contact_samples_per_face,
         contact_edge_radius=contact_edge_radius,
     )
-    return TactileSimulation(
-        model, DepthCamera(PICO_FLEXX.scaled(camera_scale)), deformation_threshold, core_fraction
-    )
+    camera = DepthCamera(PICO_FLEXX.scaled(camera_scale))
+    return TactileSimulation(model, camera, deformation_threshold, core_fraction, point_weighting)
 
 
 def pole_height(sim: TactileSimulation) -> float:

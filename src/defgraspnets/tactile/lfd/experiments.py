@@ -84,7 +84,7 @@ def _inputs(
     rows, contact = [], []
     for pose in poses:
         obs = sim.observe(scene.sdf, pose)
-        rows.append(tactile_features(obs.points, pose).vector(features))
+        rows.append(tactile_features(obs.points, pose, weights=obs.weights).vector(features))
         contact.append(obs.in_contact)
     return np.array(rows), np.array(contact, dtype=bool)
 
@@ -229,7 +229,7 @@ def rollout_policy(
     log = {k: [] for k in ("pose", "contact", "housing", "input", "weights")}
     for _ in range(n):
         obs = sim.observe(scene.sdf, pose)
-        s = tactile_features(obs.points, pose).vector(features)
+        s = tactile_features(obs.points, pose, weights=obs.weights).vector(features)
         twist = policy.action(s)
         log["pose"].append(pose.copy())
         log["contact"].append(obs.in_contact)

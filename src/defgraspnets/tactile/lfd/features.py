@@ -8,8 +8,13 @@ see :func:`defgraspnets.tactile.contact_regions.deformed_points`) the features a
   population covariance of the points,
 - the principal vectors ``e_1, e_2, e_3`` (3 each) — the matching unit eigenvectors,
 
-all expressed in the **world** frame. Sign convention: each principal vector is flipped so that
-its element of largest magnitude is positive (the first such element on ties).
+all expressed in the **world** frame. With ``weights`` (one non-negative weight per point, e.g. its
+indentation beyond the contact-core cut, :class:`~defgraspnets.tactile.contour_sim.TactileSimulation`
+``point_weighting="depth"``) the centroid and covariance are the weighted mean and the weighted population
+covariance ``sum w (x - c)(x - c)^T / sum w``; without (None) every point counts once.
+
+Sign convention: each principal vector is flipped so that its element of largest magnitude is positive
+(the first such element on ties).
 
 No contact (fewer than ``min_points`` deformed points): the centroid is the camera-frame origin
 and the principal vectors are the camera-frame axes x, y, z, both transformed to the world (so
@@ -104,13 +109,15 @@ class TactileFeatures:
         return np.concatenate(blocks)
 
 
-def tactile_features(deformed_points, sensor_pose, min_points: int = 3) -> TactileFeatures:
+def tactile_features(deformed_points, sensor_pose, min_points: int = 3, weights=None) -> TactileFeatures:
     """Features of one reading from its deformed points (N, 3) in the sensor (camera) frame [m].
 
     Args:
         deformed_points: (N, 3) points, N may be 0.
         sensor_pose: (4, 4) world <- sensor transform.
         min_points: fewer points than this counts as no contact (defaults are returned).
+        weights: (N,) non-negative point weights, or None (each point counts once). Weights summing to 0
+            count as no contact.
     """
     pose = check_rigid_transform(sensor_pose, "sensor_pose", single=True)
     rot, pos = pose[:3, :3], pose[:3, 3]
@@ -122,12 +129,24 @@ def tactile_features(deformed_points, sensor_pose, min_points: int = 3) -> Tacti
     if min_points < 1:
         raise ValueError(f"min_points must be >= 1, got {min_points}")
     n = p.shape[0]
-    if n < min_points:
+    if weights is not None:
+        w = np.asarray(weights, dtype=np.float64)
+        if w.shape != (n,):
+            raise ValueError(f"weights must have shape ({n},), got {w.shape}")
+        if not (np.isfinite(w).all() and (w >= 0).all()):
+            raise ValueError("weights must be finite and >= 0")
+    if n < min_points or (weights is not None and not w.sum() > 0):
         return TactileFeatures(pos.copy(), np.zeros(3), rot.T.copy(), False, n)
     world = p @ rot.T + pos
-    centroid = world.mean(axis=0)
-    diff = world - centroid
-    cov = diff.T @ diff / n
+    if weights is None:
+        centroid = world.mean(axis=0)
+        diff = world - centroid
+        cov = diff.T @ diff / n
+    else:
+        w = w / w.sum()
+        centroid = w @ world
+        diff = world - centroid
+        cov = (diff * w[:, None]).T @ diff
     values, vectors = np.linalg.eigh(cov)
     order = np.argsort(values)[::-1]
     variances = np.clip(values[order], 0.0, None)

@@ -498,7 +498,7 @@ def _extent_along(shape, theta, direction) -> float:
 
 def _features(sim, scene, pose):
     obs = sim.observe(scene, pose)
-    return obs, tactile_features(obs.points, pose).vector(MANIPULATION_FEATURES)
+    return obs, tactile_features(obs.points, pose, weights=obs.weights).vector(MANIPULATION_FEATURES)
 
 
 def _object_contact_xy(sim, obs, pose, obj, object_pose) -> np.ndarray:
