@@ -37,10 +37,10 @@ def main(cfg: DictConfig) -> None:
     from defgraspnets.grasp.experiments import experiment_solver_options
     from defgraspnets.grasp.squeeze import squeeze_solver_options
 
-    if cfg.claim_dir and not claim_object(cfg.claim_dir, cfg.object):
-        log.info("%s: claimed by another worker, skipped", cfg.object)
-        return
     if cfg.claim_dir:
+        if not claim_object(cfg.claim_dir, cfg.object):
+            log.info("%s: claimed by another worker, skipped", cfg.object)
+            return
         log.info("claimed object %s for this worker", cfg.object)
     obj, labels = cfg.object, {}
     if obj == "box":

@@ -45,6 +45,7 @@ __all__ = [
     "Split",
     "grasp_axis_ids",
     "make_split",
+    "named_rng",
 ]
 
 log = logging.getLogger(__name__)
@@ -116,7 +117,9 @@ class Split:
         }
 
 
-def _rng(seed: int, name: str) -> np.random.Generator:
+def named_rng(seed: int, name: str) -> np.random.Generator:
+    """A generator seeded by ``seed`` and a CRC of ``name``: draws for one object (file, category, ...) that
+    do not change when others are added, and are the same in every run."""
     return np.random.default_rng([int(seed), zlib.crc32(name.encode())])
 
 
@@ -169,7 +172,7 @@ def _grasp_holdout(
         count = _count(len(units), fraction, what)
         if len(units) >= 2 * minimum:
             count = max(count, minimum)
-        pick = units[_rng(seed, f"{what}/{name}").permutation(len(units))[:count]]
+        pick = units[named_rng(seed, f"{what}/{name}").permutation(len(units))[:count]]
         held |= on & np.isin(key, pick)
         if holdout == "axis" and count == 1:
             single_axis.append(str(name))
@@ -243,7 +246,7 @@ def make_split(
             if len(unique) < 2:
                 log.warning("object %s has a single Young's modulus: kept for training only", name)
                 continue
-            test_e = _rng(seed, f"E/{name}").permutation(unique)[: _count(len(unique), frac, "moduli")]
+            test_e = named_rng(seed, f"E/{name}").permutation(unique)[: _count(len(unique), frac, "moduli")]
             held[np.flatnonzero(on)[np.isin(log_e, test_e)]] = True
         train, test = all_entries[~held], all_entries[held]
         test_names = train_names = names
@@ -258,7 +261,7 @@ def make_split(
             if len(members) < 2:
                 log.warning("category %s has a single primitive (%s): kept for training only", cat, members)
                 continue
-            order = _rng(seed, f"objects/{cat}").permutation(len(members))
+            order = named_rng(seed, f"objects/{cat}").permutation(len(members))
             test_names += [members[i] for i in order[: _count(len(members), frac, f"objects of {cat}")]]
         train_names = [n for n in prim if n not in test_names]
         test_names = sorted(test_names)

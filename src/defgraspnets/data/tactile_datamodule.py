@@ -61,7 +61,6 @@ thesis has no third split).
 from __future__ import annotations
 
 import glob
-import zlib
 from pathlib import Path
 
 import lightning as L
@@ -69,6 +68,7 @@ import numpy as np
 import torch
 from torch.utils.data import ConcatDataset, DataLoader, Dataset
 
+from defgraspnets.data.splits import named_rng
 from defgraspnets.data.tactile_schema import (
     COMMAND_PARAM_NAMES,
     PARAM_NAMES,
@@ -115,7 +115,7 @@ def split_indices(n: int, val_fraction: float, seed: int, key: str) -> tuple[np.
     """Seeded (train, val) index split of ``n`` samples; ``key`` (e.g. the file name) decorrelates shards."""
     if not 0.0 <= val_fraction < 1.0:
         raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction!r}")
-    perm = np.random.default_rng([int(seed), zlib.crc32(key.encode())]).permutation(n)
+    perm = named_rng(seed, key).permutation(n)
     n_val = int(round(val_fraction * n))
     if n - n_val < 1:
         raise ValueError(f"{key}: {n} samples leave no training data at val_fraction={val_fraction}")

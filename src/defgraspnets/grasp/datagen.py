@@ -37,7 +37,6 @@ import json
 import logging
 import os
 import time
-import zlib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -56,6 +55,7 @@ from defgraspnets.data.grasp_schema import (
     ObjectRecord,
     shard_file_name,
 )
+from defgraspnets.data.splits import named_rng
 
 from . import features as _features
 from .experiments import (
@@ -255,7 +255,7 @@ def object_moduli(
         )
     if per_object is None or name in set(all_moduli_objects):
         return moduli
-    rng = np.random.default_rng([int(seed), zlib.crc32(f"moduli/{name}".encode())])
+    rng = named_rng(seed, f"moduli/{name}")
     chosen = np.sort(rng.choice(len(moduli), size=int(per_object), replace=False))
     return [moduli[i] for i in chosen]
 
