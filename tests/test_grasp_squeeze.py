@@ -524,6 +524,35 @@ def test_a_larger_first_step_budget_lets_a_stiff_ring_roll_into_the_grasp():
     np.testing.assert_array_equal(lockstep.displacement, eqs[0].displacement)
 
 
+def test_every_ramp_streamed_through_a_slot_gets_the_first_step_budget():
+    """``squeeze_stream`` (the data path with ``stream_slots`` > 0): one slot runs two ramps in turn, each
+    from the template's rest state, so each ramp's first force step gets ``max_newton_first_step``. The
+    268-vertex cube at 10 MPa, grasp 96: its first step needs 271 Newton iterations (NOT_CONVERGED with 200);
+    as the second ramp through the slot, after grasp 0, it converges as in a batch of its own."""
+    from pathlib import Path
+
+    from defgraspnets.grasp.squeeze import finger_contact_poses, squeeze_stream
+
+    mesh = fem.TetMesh.load(Path(__file__).parent / "data" / "cuboid_30x30x30_ftetwild.vtu")
+    grasps = sample_antipodal_grasps(mesh, num_grasps=100, friction_coefficient=0.7, seed=0)[[0, 96]]
+    material = fem.Material(1e7, 0.3, 1000.0, model="neohookean")
+    options = squeeze_solver_options(linear_solver="direct")
+    solver = make_squeeze_solver(mesh, grasps[[0]], material, 0.7, device="cpu", options=options)
+    got = {}
+
+    def on_steps(ramps, steps, part):
+        for i, (j, k) in enumerate(zip(ramps, steps)):
+            got[int(j), int(k)] = (int(part.status[i]), int(part.newton_iterations[i]), part.displacement[i])
+
+    squeeze_stream(solver, finger_contact_poses(grasps), [material] * 2, on_steps, max_force=0.3, steps=1)
+    status, newton, displacement = got[1, 0]
+    assert status == fem.SolveStatus.CONVERGED and 200 < newton <= 400  # measured 271
+    alone = make_squeeze_solver(mesh, grasps[[1]], material, 0.7, device="cpu", options=options)
+    (eq,) = squeeze_ramp(alone, 0.3, 1)
+    assert eq.newton_iterations[0] == newton
+    np.testing.assert_array_equal(eq.displacement[0], displacement)
+
+
 def test_the_squeeze_path_gives_the_first_force_step_twice_the_newton_budget():
     from defgraspnets.grasp.experiments import experiment_solver_options
     from defgraspnets.grasp.squeeze import FIRST_STEP_BUDGET_FACTOR
