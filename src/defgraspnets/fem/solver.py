@@ -177,8 +177,8 @@ class SolverOptions:
             finished a load step yet. Later load steps keep ``max_newton_per_solve``. A stiff curved object
             must still roll or slide into the grasp in a squeeze ramp's first force step, through the
             proximal loop of ``stabilization_relax`` (which counts towards this budget, at
-            ``RELAX_BUDGET_SHARE``); the later steps of the ramp start from a settled grip (measured on the
-            2-core CPU, ``benchmarks/squeeze_first_step_budget_cpu.md``). A problem counts a load step as
+            ``RELAX_BUDGET_SHARE``); the later steps of the ramp mostly start from a settled grip (measured on
+            the 2-core CPU, ``benchmarks/squeeze_first_step_budget_cpu.md``). A problem counts a load step as
             finished once it has reached the step's end (converged), so a problem flagged in its first step
             never leaves it.
         force_maximum_runaway: R, early flag of a force ramp that passed a force maximum of its equilibrium

@@ -228,15 +228,16 @@ def squeeze_solver_options(**overrides) -> fem.SolverOptions:
     times the later steps' budget (``max_newton_first_step`` = 400 with the 200 above; given explicitly it is
     kept, and ``max_newton_per_solve=0`` leaves both unlimited). Measured on the 2-core CPU ("direct",
     ``benchmarks/squeeze_first_step_budget_cpu.md``): annulus_ro45_ri35_h20 at 4.64 MPa, grasps 0-24 of the
-    data path's 100, 0-1.5 N in 5 steps, 18 -> 25 of 25 ramps (the 7 gained roll 0.40-0.87 mm in 281-385
-    Newton iterations; the next step takes 51-103), 4977 -> 6273 Newton iterations; cone_rb20_rt5_h80 at 10
-    MPa (the same grasps and ramp) 20 -> 24 of 25 (3789 -> 4770; grasp 14 needs 692); the 268-vertex cube,
-    grasps 0, 4, ..., 96, 0-15 N in 50 steps, at 10 MPa 24 -> 25 (grasp 96, which the relax loop had lost, in
-    271), at 10 kPa 14 of 25 either way (grasp 24 fails its first step after 414 instead of 224 iterations).
-    Every ramp whose first step converges within 200 is unchanged bit for bit (38 of the annulus and cone, 48
-    of the cube), and so is the cube at 100 kPa, where 400 for every step would save one more ramp (grasp 48,
-    whose second step needs 221: the later steps' budget stops tilted grasps whose friction keeps re-lagging,
-    so it stays). ``max_newton_first_step=200`` gives the data sets before session 40.
+    data path's 100, 0-1.5 N in 5 steps, 18 -> 25 of 25 ramps (the 7 gained converge their first step in
+    281-385 Newton iterations, the next in 51-103, and end at 0.40-0.87 mm of pad travel), 4977 -> 6273 Newton
+    iterations; cone_rb20_rt5_h80 at 10 MPa (the same grasps and ramp) 20 -> 24 of 25 (3789 -> 4770; grasp 14
+    needs 692); the 268-vertex cube, grasps 0, 4, ..., 96, 0-15 N in 50 steps, at 10 MPa 24 -> 25 (grasp 96,
+    which the relax loop had lost, in 271), at 10 kPa 14 of 25 either way (grasp 24 fails its first step after
+    414 instead of 224 iterations). Every ramp whose first step converges within 200 is unchanged bit for bit
+    (38 of the annulus and cone, 48 of the cube), and so is the cube at 100 kPa, where 400 for every step
+    would save one more ramp (grasp 48, whose second step needs 221: the later steps' budget stops tilted
+    grasps whose friction keeps re-lagging, so it stays). ``max_newton_first_step=200`` gives the data sets
+    before session 40.
     """
     overrides = {key: value for key, value in overrides.items() if value is not None}
     budget = overrides.get("max_newton_per_solve", 200)
