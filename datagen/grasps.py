@@ -72,6 +72,7 @@ def main(cfg: DictConfig) -> None:
         solver_options=squeeze_solver_options(
             linear_solver=cfg.linear_solver,
             max_newton_per_solve=cfg.max_newton_per_step,
+            max_newton_first_step=cfg.max_newton_first_step,
             max_step_fraction=cfg.max_step_fraction,
             friction_stick_slip=cfg.friction_stick_slip,
             stabilization=cfg.stabilization,

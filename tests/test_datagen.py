@@ -407,3 +407,6 @@ def test_the_script_grasps_a_tet_mesh_file_with_its_labels(tmp_path):
     np.testing.assert_allclose(shard.object.points, _box().points)
     r = run(f"object={tmp_path}/missing.vtu", "device=cpu", f"out_dir={tmp_path}/grasps")
     assert r.returncode != 0 and "no object mesh file at" in r.stderr
+    # a bad solver key is an error that names it
+    r = run(f"object={mesh_file}", "max_newton_first_step=-5", "device=cpu", f"out_dir={tmp_path}/bad")
+    assert r.returncode != 0 and "max_newton_first_step must be None or an integer >= 0, got -5" in r.stderr

@@ -124,7 +124,10 @@ def test_released_stabilization_establishes_stiff_curved_first_contacts():
             make_squeeze_solver(mesh, grasps, material, mu, device="cpu", options=options), 1.5, 1
         )[0]
 
-    assert not first_step(stabilization=0.0, stabilization_release=False).converged.any()  # the plain solve
+    # the plain solve, within the 200 iterations it was measured with (the squeeze path's first step has 400
+    # since session 40: then 3 of the 4 converge without stabilization too)
+    plain = first_step(stabilization=0.0, stabilization_release=False, max_newton_first_step=200)
+    assert not plain.converged.any()
     eq = first_step()  # the squeeze path's default since session 24: released stabilization
     eq.require_converged()
     assert np.all(eq.stabilization_force == 0.0)

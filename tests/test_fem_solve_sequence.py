@@ -135,3 +135,62 @@ def test_a_check_flags_problems_where_they_reach_a_level_as_setting_the_status_b
         _assert_same(a, b)
     with pytest.raises(ValueError, match="check must return"):
         _solver("dense").solve_sequence(_levels(1), check=lambda levels, part, rows: np.zeros(1))
+
+
+def test_the_first_load_step_since_the_rest_state_has_its_own_newton_budget():
+    """``max_newton_first_step``: a problem's first load step since its rest state gets its own Newton budget,
+    later steps keep ``max_newton_per_solve``; problems that need no more than the smaller budget are the
+    same bit for bit; ``reset`` and a copied rest state start the count again, a copied gripped problem does
+    not. (Squeeze ramps, streamed and lockstep: ``test_grasp_squeeze.py``.)"""
+    from fem_helpers import pad_squeeze_solver
+
+    gravity = fem.BodyLoad(gravity=(0.0, 0.0, -9.81))
+
+    def build(offsets, **options):
+        return pad_squeeze_solver(
+            offsets, linear_solver="dense", max_newton_iterations=20, max_newton_per_solve=20, **options
+        )
+
+    offsets, forces = OFFSETS[1:], 0.1 * FORCES[1:]  # gripped at 0.2-0.3 N under gravity, first step
+    a = build(offsets).solve(targets={"grip": forces}, body_load=gravity)
+    first = build(offsets, max_newton_first_step=80)
+    b = first.solve(targets={"grip": forces}, body_load=gravity)
+    # the grasp at 4 mm needs several increments, 61 Newton iterations: beyond 20, within 80
+    assert a.status.tolist() == [0, fem.SolveStatus.NOT_CONVERGED, 0, 0] and a.newton_iterations[1] >= 20
+    b.require_converged()
+    assert 20 < b.newton_iterations[1] <= 80
+    for g in (0, 2, 3):  # (gripped within 20 either way)
+        assert a.newton_iterations[g] == b.newton_iterations[g]
+        np.testing.assert_array_equal(a.displacement[g], b.displacement[g])
+        np.testing.assert_array_equal(a.travel["grip"][g], b.travel["grip"][g])
+    # back to the rest state: a first step again, the same equilibrium
+    first.reset()
+    again = first.solve(targets={"grip": forces}, body_load=gravity)
+    np.testing.assert_array_equal(again.displacement, b.displacement)
+    np.testing.assert_array_equal(again.newton_iterations, b.newton_iterations)
+    # a later step keeps the budget of 20: the centred grasp, gripped at 0.1 N without gravity first, needs
+    # several increments (127 Newton iterations without a budget) once gravity is on
+    centred = {"grip": 0.1 * FORCES[:1]}
+    later = build(OFFSETS[:1], max_newton_first_step=80)
+    later.solve(targets=centred).require_converged()
+    eq = later.solve(targets=centred, body_load=gravity)
+    assert eq.status[0] == fem.SolveStatus.NOT_CONVERGED and eq.newton_iterations[0] <= 40
+    # copied states carry their count: problem 0 from a rest state (a first step: 80), problem 1 from the
+    # gripped centred problem (a later step: 20)
+    rest = build(OFFSETS[2:3], max_newton_first_step=80)
+    gripped = build(OFFSETS[:1], max_newton_first_step=80)
+    gripped.solve(targets=centred).require_converged()
+    copy = build(OFFSETS[:2], max_newton_first_step=80)
+    copy.copy_state_from(rest, rows=[0], into=[0])
+    copy.copy_state_from(gripped, rows=[0], into=[1])
+    eq = copy.solve(targets={"grip": [forces[1], centred["grip"][0]]}, body_load=gravity)
+    assert eq.status.tolist() == [fem.SolveStatus.CONVERGED, fem.SolveStatus.NOT_CONVERGED]
+    assert eq.newton_iterations[0] == b.newton_iterations[1]
+
+
+def test_the_first_step_budget_is_checked():
+    for bad in (-1, 1.5, True, "400"):
+        with pytest.raises(ValueError, match="max_newton_first_step"):
+            fem.SolverOptions(max_newton_first_step=bad)
+    assert fem.SolverOptions().max_newton_first_step is None  # the engine: max_newton_per_solve
+    assert fem.SolverOptions(max_newton_first_step=0).max_newton_first_step == 0  # no budget

@@ -78,8 +78,9 @@ MAX_FACTOR_REUSE_DEFAULT = {False: 4, True: 0}
 LINE_SEARCH_TRIALS_DEFAULT = {False: 1, True: 8}
 
 
-#: share of a problem's Newton budget (``max_newton_per_solve``) after which the proximal loop of
-#: ``stabilization_relax`` gives up (the rest is left to the bisection of the failed increment)
+#: share of a problem's Newton budget (``max_newton_per_solve``; ``max_newton_first_step`` in its first load
+#: step) after which the proximal loop of ``stabilization_relax`` gives up (the rest is left to the bisection
+#: of the failed increment)
 RELAX_BUDGET_SHARE = 1.0
 #: smallest fraction of the increment stabilization springs that ``stabilization_relax_decay`` weakens
 #: them to
@@ -169,6 +170,17 @@ class SolverOptions:
             converged state. Batches advance in lockstep, so one hard problem (a tilted grasp whose friction
             keeps re-lagging: measured up to 2000 iterations per load step) otherwise holds up all others;
             data generators set a budget and drop the flagged problems.
+        max_newton_first_step: Newton iteration budget of a problem's first load step since its rest state
+            (None, the default: ``max_newton_per_solve``; 0: none), over all its load increments: the first
+            :meth:`solve` call or :meth:`solve_sequence` / :meth:`solve_stream` level after the solver was
+            built, :meth:`reset`, or the problem was copied (:meth:`copy_state_from`) from one that has not
+            finished a load step yet. Later load steps keep ``max_newton_per_solve``. A stiff curved object
+            must still roll or slide into the grasp in a squeeze ramp's first force step, through the
+            proximal loop of ``stabilization_relax`` (which counts towards this budget, at
+            ``RELAX_BUDGET_SHARE``); the later steps of the ramp mostly start from a settled grip (measured on
+            the 2-core CPU, ``benchmarks/squeeze_first_step_budget_cpu.md``). A problem counts a load step as
+            finished once it has reached the step's end (converged), so a problem flagged in its first step
+            never leaves it.
         force_maximum_runaway: R, early flag of a force ramp that passed a force maximum of its equilibrium
             path (0: off, the default). A force ramp cannot pass a limit point: every increment beyond it runs
             away and fails, and plain halving spends the rest of the problem's Newton budget on ever smaller
@@ -331,6 +343,7 @@ class SolverOptions:
     friction_relaxation: bool = True
     friction_lag_check: float = 1.0
     max_newton_per_solve: int = 0
+    max_newton_first_step: int | None = None
     force_maximum_runaway: float = 0.0
     force_maximum_attempts: int = 2
     escape_fraction: float = 0.5
@@ -384,6 +397,7 @@ class SolverOptions:
             raise ValueError(
                 f"SolverOptions.max_newton_per_solve must be >= 0, got {self.max_newton_per_solve!r}"
             )
+        _check_optional_int("max_newton_first_step", self.max_newton_first_step, 0)
         _check_optional_int("max_factor_reuse", self.max_factor_reuse, 0)
         if not 0 < self.factor_reuse_contraction < 1:
             raise ValueError(
@@ -878,6 +892,7 @@ class QuasiStaticSolver:
         self._trial_step = wp.zeros(T * B, dtype=wp.float64, device=dev)
         self._last_increment = wp.zeros_like(self._q)  # q change of each problem's last converged increment
         self._last_change = np.zeros((B, 0))  # and the load change that caused it (predictor)
+        self._load_steps = np.zeros(B, dtype=int)  # load steps each problem finished since its rest state
         self._positions = wp.zeros(B * N, dtype=wp.vec3d, device=dev)
         self._positions_ref = wp.zeros_like(self._positions)
         self._positions_trial = wp.zeros(T * B * N, dtype=wp.vec3d, device=dev)
@@ -1140,6 +1155,7 @@ class QuasiStaticSolver:
         self._q_spring.zero_()
         self._last_increment.zero_()
         self._last_change = np.zeros((self.batch_size, 0))
+        self._load_steps[:] = 0
         self._lag_force.zero_()
         self._stick_stretch.zero_()
         self._load = BodyLoad()
@@ -1288,6 +1304,7 @@ class QuasiStaticSolver:
         if self._last_change.shape[1:] != other._last_change.shape[1:]:  # (B, 0): no change committed yet
             self._last_change = np.zeros((B, *other._last_change.shape[1:]))
         self._last_change[into] = other._last_change[rows]
+        self._load_steps[into] = other._load_steps[rows]
         self._factor_steps[into] = other._factor_steps[rows]
         self._diag_shift_base[into] = other._diag_shift_base[rows]  # with the source's spring state
         self._shift_damping[into] = other._shift_damping[rows]
@@ -2340,9 +2357,10 @@ class QuasiStaticSolver:
             log.debug("stabilization relax: springs' force %s, tolerance %s", spring[:4], run.tol[rows][:4])
         freed = (done & run.ok & ~back & ~proximal) | relaxed
         budget = path.relaxes < o.stabilization_relax
-        if o.max_newton_per_solve:
+        newton_budget = self._newton_budget()
+        if newton_budget.any():
             spent = path.newton_total + path.held_newton + run.iters
-            budget &= spent < RELAX_BUDGET_SHARE * o.max_newton_per_solve
+            budget &= (newton_budget == 0) | (spent < RELAX_BUDGET_SHARE * newton_budget)
         decay = o.stabilization_relax_decay
         retry = back & ~run.ok & budget  # the release failed: back to the stabilized solution
         # a proximal solve with weakened springs that failed: back to the last converged one, stiffer
@@ -2425,6 +2443,7 @@ class QuasiStaticSolver:
         next increment, or restore and halve it, or flag the problem. Returns the problems that left their
         load path (reached its end or were flagged)."""
         o = self.options
+        newton_budget = self._newton_budget()  # (of the load step the problems are on)
         ok, fail_status = run.ok & done, run.status.copy()
         path.newton_total[done] += run.iters[done] + path.held_newton[done]
         path.linear_total[done] += run.lin_iters[done] + path.held_linear[done]
@@ -2455,6 +2474,7 @@ class QuasiStaticSolver:
                     self._stick_start.pop(b, None)
             path.lam_done[good] = path.lam_try[good]
             finished = good & (path.lam_done >= 1.0)
+            self._load_steps[finished] += 1
             path.todo &= ~finished
             left |= finished
             grow = good & ~finished
@@ -2493,8 +2513,8 @@ class QuasiStaticSolver:
             path.lam_try[retry] = 0.5 * (path.lam_done[retry] + path.lam_try[retry])
             if o.relag_friction_on_retry:  # from the k-th failed attempt of the step on (True: k = 1)
                 path.relag_every |= retry & (path.bisections >= int(o.relag_friction_on_retry))
-        if o.max_newton_per_solve:
-            spent = path.todo & done & (path.newton_total >= o.max_newton_per_solve)
+        if newton_budget.any():
+            spent = path.todo & done & (newton_budget > 0) & (path.newton_total >= newton_budget)
             for b in np.nonzero(spent)[0]:
                 self.status[b] = SolveStatus.NOT_CONVERGED
                 log.info(
@@ -2506,6 +2526,13 @@ class QuasiStaticSolver:
             path.todo &= ~spent
             left |= spent
         return left
+
+    def _newton_budget(self) -> np.ndarray:
+        """(B,) Newton budget of each problem's current load step (0: none): ``max_newton_first_step`` for a
+        problem that has not finished a load step since its rest state, else ``max_newton_per_solve``."""
+        o = self.options
+        first = o.max_newton_per_solve if o.max_newton_first_step is None else o.max_newton_first_step
+        return np.where(self._load_steps == 0, first, o.max_newton_per_solve)
 
     def _force_runaway(self, path: _LoadPath, mask: np.ndarray) -> np.ndarray:
         """(B,) bool: the masked problems' failed increments (their states not yet restored) raised the force

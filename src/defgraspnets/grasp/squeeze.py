@@ -22,6 +22,7 @@ from .sampler import GraspSet
 
 __all__ = [
     "FINGER_NAMES",
+    "FIRST_STEP_BUDGET_FACTOR",
     "GRIP_DOF",
     "finger_contact_poses",
     "make_squeeze_solver",
@@ -33,6 +34,9 @@ __all__ = [
 
 FINGER_NAMES = ("left_finger", "right_finger")
 GRIP_DOF = "grip"
+#: a squeeze ramp's first force step may spend this many times the Newton budget of a later one
+#: (``SolverOptions.max_newton_first_step``, when not given; :func:`squeeze_solver_options` says why)
+FIRST_STEP_BUDGET_FACTOR = 2
 
 
 def pad_shape(gripper: ParallelJawGripper = FRANKA_HAND) -> fem.RoundedBox:
@@ -81,11 +85,11 @@ def squeeze_solver_options(**overrides) -> fem.SolverOptions:
 
     Friction capacities are consistent with the normal forces to 1e-3 of the total (``friction_rtol``,
     instead of per contact to ``rtol``): 30 % fewer Newton iterations on a tilted grasp.
-    A grasp may spend at most 200 Newton iterations per force step (``max_newton_per_solve``; an easy grasp
-    needs 3-10): the batch advances in lockstep, and out of 100 grasps of the benchmark box a few tilted
-    ones spent 1000-2000 iterations per step at 10-15 N (friction re-lagging), holding up the other 97.
-    Those grasps are flagged NOT_CONVERGED and left out of data sets, as the thesis leaves out unstable
-    grasps.
+    A grasp may spend at most 200 Newton iterations per force step (``max_newton_per_solve``; 400 in the
+    first, below; an easy grasp needs 3-10): the batch advances in lockstep, and out of 100 grasps of the
+    benchmark box a few tilted ones spent 1000-2000 iterations per step at 10-15 N (friction re-lagging),
+    holding up the other 97. Those grasps are flagged NOT_CONVERGED and left out of data sets, as the thesis
+    leaves out unstable grasps.
 
     Friction has a stick zone of at least ``friction_stick_slip`` = 5e-3 h (a sticking contact
     shifts by up to 5e-3 h before it slides, 14 um on a 1000-vertex 30 mm fTetWild cube; commercial penalty
@@ -218,8 +222,29 @@ def squeeze_solver_options(**overrides) -> fem.SolverOptions:
     which bisection saves, lost; 5174 -> 4935 Newton iterations). Four grasps that bisection saves end on
     another path of the frictional problem (e.g. the annulus' grasp 5: pad travel 1.487 instead of 1.451 mm at
     1.5 N). ``stabilization_relax=0`` turns it off (the data sets before session 39).
+
+    That loop, the roll into the grasp, is the first force step's work: the later steps mostly start from a
+    settled grip. Since session 40 the first force step of a ramp may spend ``FIRST_STEP_BUDGET_FACTOR`` = 2
+    times the later steps' budget (``max_newton_first_step`` = 400 with the 200 above; given explicitly it is
+    kept, and ``max_newton_per_solve=0`` leaves both unlimited). Measured on the 2-core CPU ("direct",
+    ``benchmarks/squeeze_first_step_budget_cpu.md``): annulus_ro45_ri35_h20 at 4.64 MPa, grasps 0-24 of the
+    data path's 100, 0-1.5 N in 5 steps, 18 -> 25 of 25 ramps (the 7 gained converge their first step in
+    281-385 Newton iterations, the next in 51-103, and end at 0.40-0.87 mm of pad travel), 4977 -> 6273 Newton
+    iterations; cone_rb20_rt5_h80 at 10 MPa (the same grasps and ramp) 20 -> 24 of 25 (3789 -> 4770; grasp 14
+    needs 692); the 268-vertex cube, grasps 0, 4, ..., 96, 0-15 N in 50 steps, at 10 MPa 24 -> 25 (grasp 96,
+    which the relax loop had lost, in 271), at 10 kPa 14 of 25 either way (grasp 24 fails its first step after
+    414 instead of 224 iterations). Every ramp whose first step converges within 200 is unchanged bit for bit
+    (38 of the annulus and cone, 48 of the cube), and so is the cube at 100 kPa, where 400 for every step
+    would save one more ramp (grasp 48, whose second step needs 221: the later steps' budget stops tilted
+    grasps whose friction keeps re-lagging, so it stays). ``max_newton_first_step=200`` gives the data sets
+    before session 40.
     """
     overrides = {key: value for key, value in overrides.items() if value is not None}
+    budget = overrides.get("max_newton_per_solve", 200)
+    if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)):
+        budget_first = None  # (SolverOptions judges the budget)
+    else:
+        budget_first = FIRST_STEP_BUDGET_FACTOR * budget
     return fem.SolverOptions(
         **{
             "max_step_fraction": 0.01,
@@ -227,7 +252,8 @@ def squeeze_solver_options(**overrides) -> fem.SolverOptions:
             "friction_stick_slip": 5e-3,
             "rtol": 1e-5,
             "friction_rtol": 1e-3,
-            "max_newton_per_solve": 200,
+            "max_newton_per_solve": budget,
+            "max_newton_first_step": budget_first,
             "relag_friction_on_retry": 2,
             "stabilization": 1e-4,
             "stabilization_release": True,
