@@ -58,6 +58,9 @@ class Equilibrium:
     # (B,) largest vertex force of the increment stabilization at the last converged increment [N]
     # (SolverOptions.stabilization; zero when off)
     stabilization_force: np.ndarray | None = None
+    # (B,) load steps since the reset reached past a force maximum by a jump of the equilibrium path
+    # (SolverOptions.force_maximum_snap; zero when off)
+    snaps: np.ndarray | None = None
     # gas pressure (solvers with a pressure surface only)
     gauge_pressure: np.ndarray | None = None  # (B,) p(V) of the cavity [Pa]
     cavity_volume: np.ndarray | None = None  # (B,) V of the pressurized cavity (without V_h) [m^3]

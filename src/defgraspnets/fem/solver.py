@@ -197,6 +197,22 @@ class SolverOptions:
             value on the ramp): the cube gives way abruptly.
         force_maximum_attempts: runaway failed increments of one load step that flag FORCE_MAXIMUM (>= 1;
             see ``force_maximum_runaway``).
+        force_maximum_snap: S (0: off, the default), what a problem does once ``force_maximum_attempts``
+            runaways were counted in a load step: instead of being flagged FORCE_MAXIMUM at once it retries
+            the failing increment (not halved, friction lags frozen after the first iterations as in a first
+            attempt) with up to S Newton iterations per solve, and so does every later increment of the
+            problem, whose Newton budget per load step (``max_newton_per_solve``) grows by S. A runaway need
+            not end the path: past a limit point of its stable branch the path may *snap*, jump at the same
+            force to another stable equilibrium that carries more load (a soft slab pinched near its end or
+            a soft cylinder turns and slides by millimetres between the pads, then stiffens; a soft column
+            squeezed end to end buckles). The runaway attempts were on their way there and stopped after
+            ``max_newton_iterations``. If the retry fails the problem is flagged FORCE_MAXIMUM as before;
+            if the load step is reached, the problem goes on and ``Equilibrium.snaps`` counts the step.
+            Ramps that never run away twice in a step are unchanged bit for bit. Measured (session 40,
+            2-core CPU, ``benchmarks/squeeze_soft_failures_cpu.md``): cuboid_70x35x20 at 10 kPa, grasp 0 of
+            the data path, runs away at 6.3 N although tiny increments converge there with the force still
+            rising at the secant stiffness (1.4-1.6 N/mm); an increment of up to 200 Newton iterations
+            jumps 1.5 mm of travel per pad (the slab turns by 4.5 degrees), and the ramp converges to 15 N.
         escape_fraction: object motion within one increment, as a fraction of the diagonal, that flags
             the problem ESCAPED (no equilibrium).
         regularization: diagonal shift relative to E h per vertex (removes floating rigid modes).
@@ -333,6 +349,7 @@ class SolverOptions:
     max_newton_per_solve: int = 0
     force_maximum_runaway: float = 0.0
     force_maximum_attempts: int = 2
+    force_maximum_snap: int = 0
     escape_fraction: float = 0.5
     regularization: float = 1e-10
     stabilization: float = 0.0
@@ -380,6 +397,9 @@ class SolverOptions:
                 "SolverOptions.force_maximum_attempts must be an int >= 1, "
                 f"got {self.force_maximum_attempts!r}"
             )
+        snap = self.force_maximum_snap
+        if isinstance(snap, bool) or not (isinstance(snap, (int, np.integer)) and snap >= 0):
+            raise ValueError(f"SolverOptions.force_maximum_snap must be an int >= 0, got {snap!r}")
         if self.max_newton_per_solve < 0:
             raise ValueError(
                 f"SolverOptions.max_newton_per_solve must be >= 0, got {self.max_newton_per_solve!r}"
@@ -536,6 +556,8 @@ class _LoadPath:
     relaxing: np.ndarray  # (B,) bool: Newton runs such a solve
     spring_scale: np.ndarray  # (B,) fraction of the stabilization springs in its solves (relax decay)
     anchored: np.ndarray  # (B,) bool: its reference (friction anchor) moved; the increment's start is kept
+    snapping: np.ndarray  # (B,) bool: the increment being solved is the force_maximum_snap attempt
+    snap_tried: np.ndarray  # (B,) bool: this load step had its force_maximum_snap attempt
 
     @classmethod
     def between(cls, start: dict, end: dict) -> _LoadPath:
@@ -561,6 +583,8 @@ class _LoadPath:
             relaxing=np.zeros(B, dtype=bool),
             spring_scale=np.ones(B),
             anchored=np.zeros(B, dtype=bool),
+            snapping=np.zeros(B, dtype=bool),
+            snap_tried=np.zeros(B, dtype=bool),
         )
 
     def begin(self, mask: np.ndarray, initial_fraction: float) -> None:
@@ -574,6 +598,8 @@ class _LoadPath:
         self.relag_every[mask] = False
         self.releasing[mask] = False
         self.relaxing[mask] = False
+        self.snapping[mask] = False
+        self.snap_tried[mask] = False
         self.spring_scale[mask] = 1.0
         self.anchored[mask] = False
         self.residual[mask] = 0.0
@@ -602,6 +628,8 @@ class _NewtonRun:
     damping: np.ndarray  # (B,) Levenberg-Marquardt factor of the exact Hessian
     stale_step: np.ndarray  # (B,) bool: chord Newton's last step came from a stale factor and was cut
     dof_targets: np.ndarray  # (B, D) |actuator force targets| (force scale of the tolerance)
+    cap: np.ndarray  # (B,) Newton iterations of a solve (since its last re-lag) before the increment fails
+    snap: np.ndarray  # (B,) bool: the increment is a force_maximum_snap attempt (cap: force_maximum_snap)
     max_step: float  # largest vertex or travel move per Newton step [m]
     escape: float  # object motion within one increment that flags ESCAPED [m]
 
@@ -629,6 +657,8 @@ class _NewtonRun:
             damping=np.zeros(B),
             stale_step=np.zeros(B, dtype=bool),
             dof_targets=np.zeros((B, num_dofs)),
+            cap=np.zeros(B, dtype=int),
+            snap=np.zeros(B, dtype=bool),
         )
 
 
@@ -1148,6 +1178,10 @@ class QuasiStaticSolver:
         self._gas_law[:] = 0.0
         self._gas_target[:] = 0.0
         self.status[:] = SolveStatus.CONVERGED
+        #: (B,) load steps since the reset reached past a force maximum by a snap (force_maximum_snap)
+        self.snaps = np.zeros(self.batch_size, dtype=int)
+        # (B,) bool: a snap attempt was made; every later increment gets its Newton iterations and budget
+        self._snapping = np.zeros(self.batch_size, dtype=bool)
         #: Newton passes of the batch since the reset (one assembly each, for every problem then iterating)
         self.newton_passes = 0
         self._stabilization_at_convergence = np.zeros(self.batch_size)
@@ -1299,6 +1333,8 @@ class QuasiStaticSolver:
         self._dof_target[into] = other._dof_target[rows]
         self._prescribed[into] = other._prescribed[rows]
         self.status[into] = other.status[rows]
+        self.snaps[into] = other.snaps[rows]
+        self._snapping[into] = other._snapping[rows]
         self._stabilization_at_convergence[into] = other._stabilization_at_convergence[rows]
         mine, theirs = self._load.arrays(B), other._load.arrays(Bo)
         for k in mine:
@@ -2342,7 +2378,8 @@ class QuasiStaticSolver:
         budget = path.relaxes < o.stabilization_relax
         if o.max_newton_per_solve:
             spent = path.newton_total + path.held_newton + run.iters
-            budget &= spent < RELAX_BUDGET_SHARE * o.max_newton_per_solve
+            allowed = o.max_newton_per_solve + np.where(self._snapping, o.force_maximum_snap, 0)
+            budget &= spent < RELAX_BUDGET_SHARE * allowed
         decay = o.stabilization_relax_decay
         retry = back & ~run.ok & budget  # the release failed: back to the stabilized solution
         # a proximal solve with weakened springs that failed: back to the last converged one, stiffer
@@ -2418,6 +2455,7 @@ class QuasiStaticSolver:
         log.debug("load increment: fractions %s -> %s", path.lam_done[mask][:4], path.lam_try[mask][:4])
         step = path.change * (path.lam_try - path.lam_done)[:, None]
         self._start_increment(step, path.lam_try, path.start, path.end, mask)
+        run.snap[mask] = path.snapping[mask] | self._snapping[mask]
         self._newton_begin(run, mask)
 
     def _finish_increments(self, path: _LoadPath, run: _NewtonRun, done: np.ndarray) -> np.ndarray:
@@ -2454,7 +2492,13 @@ class QuasiStaticSolver:
                 for b in np.flatnonzero(good & anchored).tolist():
                     self._stick_start.pop(b, None)
             path.lam_done[good] = path.lam_try[good]
+            path.snapping[good] = False
             finished = good & (path.lam_done >= 1.0)
+            snapped = finished & path.snap_tried  # the load step reached past its runaways
+            if snapped.any():
+                self.snaps[snapped] += 1
+                for b in np.flatnonzero(snapped).tolist():
+                    log.info("problem %d snapped: reached its load step past a force maximum", b)
             path.todo &= ~finished
             left |= finished
             grow = good & ~finished
@@ -2462,11 +2506,22 @@ class QuasiStaticSolver:
         if bad.any():
             if (bad & anchored).any():
                 self._unanchor(bad & anchored)
+            snap = np.zeros(self.batch_size, dtype=bool)  # problems that now get their snap attempt
+            snap_failed = bad & path.snapping  # a failed snap attempt ends the problem
+            path.snapping[bad] = False
             if o.force_maximum_runaway > 0:
                 # (the failed attempts' travels, before they are restored)
                 stalled = bad & (fail_status == SolveStatus.NOT_CONVERGED)
                 path.runaways[self._force_runaway(path, stalled)] += 1
-                fail_status[stalled & (path.runaways >= o.force_maximum_attempts)] = SolveStatus.FORCE_MAXIMUM
+                maximum = stalled & ((path.runaways >= o.force_maximum_attempts) | snap_failed)
+                if o.force_maximum_snap > 0:
+                    # one more attempt at the same increment with force_maximum_snap Newton iterations
+                    snap = maximum & ~path.snap_tried
+                    path.snapping[snap] = True
+                    path.snap_tried[snap] = True
+                    self._snapping[snap] = True  # and every later increment of the problem
+                    maximum &= ~snap
+                fail_status[maximum] = SolveStatus.FORCE_MAXIMUM
             self._restore(bad)
             if (bad & anchored).any():
                 self._commit_body_reference(bad & anchored)  # (placed by the restored travels)
@@ -2478,6 +2533,7 @@ class QuasiStaticSolver:
                 | tiny
                 | (fail_status == SolveStatus.NONFINITE)
                 | (fail_status == SolveStatus.FORCE_MAXIMUM)
+                | snap_failed
             )
             for b in np.nonzero(giveup)[0]:
                 self.status[b] = fail_status[b]
@@ -2490,11 +2546,15 @@ class QuasiStaticSolver:
             path.todo &= ~giveup
             left |= giveup
             retry = bad & ~giveup
-            path.lam_try[retry] = 0.5 * (path.lam_done[retry] + path.lam_try[retry])
+            halve = retry & ~snap  # (the snap attempt retries the same increment)
+            path.lam_try[halve] = 0.5 * (path.lam_done[halve] + path.lam_try[halve])
             if o.relag_friction_on_retry:  # from the k-th failed attempt of the step on (True: k = 1)
-                path.relag_every |= retry & (path.bisections >= int(o.relag_friction_on_retry))
+                path.relag_every |= halve & (path.bisections >= int(o.relag_friction_on_retry))
+            # the snap attempt freezes its friction lags after the first iterations, as a first attempt does
+            path.relag_every[snap] = False
         if o.max_newton_per_solve:
-            spent = path.todo & done & (path.newton_total >= o.max_newton_per_solve)
+            budget = o.max_newton_per_solve + np.where(self._snapping, o.force_maximum_snap, 0)
+            spent = path.todo & done & (path.newton_total >= budget)
             for b in np.nonzero(spent)[0]:
                 self.status[b] = SolveStatus.NOT_CONVERGED
                 log.info(
@@ -2568,6 +2628,11 @@ class QuasiStaticSolver:
         B, D = self.batch_size, self.num_dofs
         run.working |= mask
         run.started |= mask
+        o = self.options
+        # (the stabilized solve, its release and relax solves of a snap attempt all get its cap)
+        run.cap[mask] = np.where(
+            run.snap[mask], max(o.force_maximum_snap, o.max_newton_iterations), o.max_newton_iterations
+        )
         run.ok[mask] = False
         run.status[mask] = SolveStatus.NOT_CONVERGED
         run.passes[mask] = 0
@@ -2596,7 +2661,7 @@ class QuasiStaticSolver:
         sysm = self.system
         working = run.working
         # a safety bound on the passes of one Newton solve (each problem's own budgets end it first)
-        working &= run.passes < (o.max_newton_iterations + 1) * (o.max_friction_relags + 1)
+        working &= run.passes < (run.cap + 1) * (o.max_friction_relags + 1)
         if not working.any():
             return
         run.passes[working] += 1
@@ -2661,7 +2726,7 @@ class QuasiStaticSolver:
         if not working.any():
             return
         # a problem out of Newton iterations since its last re-lag fails this increment (the others go on)
-        working &= (run.iters - run.last_relag) < o.max_newton_iterations
+        working &= (run.iters - run.last_relag) < run.cap
         if not working.any():
             return
         run.iters[working] += 1
@@ -3071,5 +3136,6 @@ class QuasiStaticSolver:
             reaction_force=reaction,
             tet_stress=ts,
             stabilization_force=self._stabilization_at_convergence[rows],
+            snaps=self.snaps[rows].copy(),
             **gas,
         )
