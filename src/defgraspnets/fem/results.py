@@ -19,7 +19,7 @@ class SolveStatus(IntEnum):
     NOT_CONVERGED = 1  # Newton failed even at the smallest load increment
     ESCAPED = 2  # no equilibrium exists: the object ran away (slip, lost contact, unsupported load)
     NONFINITE = 3  # NaN or inf appeared
-    # (4 is the grasp generator's STATUS_INVERTED)
+    # (4 is the grasp generator's STATUS_INVERTED, 7 its STATUS_SELF_INTERSECTING)
     PINCHED = 5  # one vertex pressed from opposite sides by two bodies: a body passed between the vertices
     # the controlled force passed a maximum of the equilibrium path: a force-controlled increment's travel
     # ran away in repeated failed attempts (SolverOptions.force_maximum_runaway; else NOT_CONVERGED)
