@@ -381,8 +381,9 @@ def test_a_runaway_that_snaps_to_another_branch_goes_on():
     60 mm apart): the column buckles at 2.1 N. The next force step's increments run the travel away, and
     the early flag stopped the ramp there (FORCE_MAXIMUM). The local branch does have a force maximum, but
     the buckled column carries more: one attempt of ``force_maximum_snap`` Newton iterations at the failing
-    increment jumps to it (the travel per pad 7.3 -> 21.7 mm at the same force; counted in
-    ``Equilibrium.snaps``), and the ramp goes on. Every step before the jump is the same bit for bit."""
+    increment jumps to it (the travel per pad 7.3 -> 21.7 mm at the same force, a buckled column that does
+    not pass through itself; counted in ``Equilibrium.snaps``), and the ramp goes on (its fold closes through
+    itself a step later: the FEM has no self-contact). Every step before the jump is the same bit for bit."""
     from pathlib import Path
 
     mesh = fem.TetMesh.load(Path(__file__).parent / "data" / "cuboid_60x40x20.vtu")
@@ -406,6 +407,7 @@ def test_a_runaway_that_snaps_to_another_branch_goes_on():
     jump = snapped[k].travel["grip"][0] - snapped[k - 1].travel["grip"][0]
     assert jump > 5 * (snapped[k - 1].travel["grip"][0] - snapped[k - 2].travel["grip"][0])
     assert snapped[k].travel["grip"][0] < 0.03  # the pads stay apart (60 mm at first contact)
+    assert mesh.surface_vertices_inside(snapped[k].positions[0]).size == 0
     for eq, ref in zip(snapped[:k], stopped[:k]):
         np.testing.assert_array_equal(eq.displacement, ref.displacement)
         np.testing.assert_array_equal(eq.travel["grip"], ref.travel["grip"])

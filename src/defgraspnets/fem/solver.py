@@ -202,17 +202,16 @@ class SolverOptions:
             the failing increment (not halved, friction lags frozen after the first iterations as in a first
             attempt) with up to S Newton iterations per solve, and so does every later increment of the
             problem, whose Newton budget per load step (``max_newton_per_solve``) grows by S. A runaway need
-            not end the path: past a limit point of its stable branch the path may *snap*, jump at the same
-            force to another stable equilibrium that carries more load (a soft slab pinched near its end or
-            a soft cylinder turns and slides by millimetres between the pads, then stiffens; a soft column
-            squeezed end to end buckles). The runaway attempts were on their way there and stopped after
-            ``max_newton_iterations``. If the retry fails the problem is flagged FORCE_MAXIMUM as before;
-            if the load step is reached, the problem goes on and ``Equilibrium.snaps`` counts the step.
-            Ramps that never run away twice in a step are unchanged bit for bit. Measured (session 40,
-            2-core CPU, ``benchmarks/squeeze_soft_failures_cpu.md``): cuboid_70x35x20 at 10 kPa, grasp 0 of
-            the data path, runs away at 6.3 N although tiny increments converge there with the force still
-            rising at the secant stiffness (1.4-1.6 N/mm); an increment of up to 200 Newton iterations
-            jumps 1.5 mm of travel per pad (the slab turns by 4.5 degrees), and the ramp converges to 15 N.
+            not end the path: past a limit point of its branch the path may *snap*, jump at the same force to
+            another equilibrium that carries more load; the runaway attempts were on their way there and
+            stopped after ``max_newton_iterations``. If the retry fails the problem is flagged FORCE_MAXIMUM
+            as before; if the load step is reached, the problem goes on and ``Equilibrium.snaps`` counts the
+            step. Ramps that never run away twice in a step are unchanged bit for bit. Measured (session 40,
+            2-core CPU, ``benchmarks/squeeze_soft_failures_cpu.md``): soft squeeze ramps flagged at 6.0 N
+            (cuboid_70x35x20, 10 kPa) and 11.7 N (cylinder_r20_h40, 21.5 kPa) reach 15 N with S = 200, the
+            object turned and slid between the pads by millimetres, but the states after the jump pass
+            through themselves (the FEM has no self-contact; ``TetMesh.surface_vertices_inside``): there it
+            buys nothing, and the squeeze path keeps it off.
         escape_fraction: object motion within one increment, as a fraction of the diagonal, that flags
             the problem ESCAPED (no equilibrium).
         regularization: diagonal shift relative to E h per vertex (removes floating rigid modes).

@@ -204,22 +204,15 @@ def squeeze_solver_options(**overrides) -> fem.SolverOptions:
     are no force maximum stay NOT_CONVERGED. The data sets leave the ramp out either way; its fields up
     to the last force reached do not change. ``force_maximum_runaway=0.0`` turns it off.
 
-    Most such runaways on soft objects are no end of the ramp but a *snap* (session 40,
-    ``benchmarks/squeeze_soft_failures_cpu.md``; ``force_maximum_snap`` = 200): the local branch passes a
-    limit point and the path jumps, at the same force, to another stable equilibrium that carries more load
-    (the object turns and slides by millimetres between the pads, or a soft column buckles). Under travel
-    control the force was still rising at the last converged state (cuboid_70x35x20 at 10 kPa, grasp 0:
-    6.0 N at 7.49 mm per pad, 1.6 N/mm) and tiny increments still converge; the runaway attempts were on
-    their way to the other branch and stopped after 40 Newton iterations. The problem now retries the
-    failing increment with up to 200 Newton iterations per solve, as every later increment of the ramp,
-    whose budget per force step grows by 200; if the step is reached the ramp goes on (``Equilibrium.snaps``
-    counts such steps), else it is flagged FORCE_MAXIMUM as before. Measured on the 2-core CPU: that
-    cuboid grasp and cylinder_r20_h40 at 21.5 kPa, grasp 0 (the data path's grasps, both FORCE_MAXIMUM on
-    the H200s at 6.0 and 11.7 N) reach 15 N (664 -> 2463 and 850 -> 1305 Newton iterations); the
-    268-vertex cube's grasp 64 at 10 kPa (a force maximum: under travel control its force drops after the
-    peak) stays FORCE_MAXIMUM at the same step. Where the snap lands depends on the path (the cuboid's
-    slab ends turned by 8.1 instead of 5.9 degrees when all increments get 200 iterations from the start).
-    ``force_maximum_snap=0`` gives the data sets before session 40.
+    On soft objects these runaways mark where the object starts to fold onto itself, which the FEM (no
+    self-contact) lets it do (session 40, ``benchmarks/squeeze_soft_failures_cpu.md``): cuboid_70x35x20 at
+    10 kPa, grasp 0, flagged at 6.0 N (its force was still rising at 1.6 N/mm under travel control), and
+    cylinder_r20_h40 at 21.5 kPa, grasp 0, flagged at 11.7 N, both reach 15 N when their increments get 200
+    Newton iterations (``force_maximum_snap``: the path jumps at the same force, the object turns and
+    slides between the pads by millimetres), but the states after the jump pass through themselves (25-35
+    surface vertices inside the object's own tets, none before it). So the flag stays the squeeze path's
+    answer (``force_maximum_snap`` = 0 here): those ramps are no data either way, and the data path would fail
+    the jumped ones as self-intersecting (``STATUS_SELF_INTERSECTING``) after 2-4 times the Newton iterations.
 
     A stiff curved object whose first contact is a point must still roll into the grasp: its stabilized first
     increment converges, but the released solve stalls on the near-free rigid mode the springs held
@@ -250,7 +243,7 @@ def squeeze_solver_options(**overrides) -> fem.SolverOptions:
             "stabilization_release": True,
             "force_maximum_runaway": 3.0,
             "force_maximum_attempts": 2,
-            "force_maximum_snap": 200,
+            "force_maximum_snap": 0,
             "stabilization_relax": 40,
             "stabilization_relax_decay": 0.25,
             **overrides,
