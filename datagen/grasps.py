@@ -78,6 +78,7 @@ def main(cfg: DictConfig) -> None:
             stabilization=cfg.stabilization,
             stabilization_release=cfg.stabilization_release,
             force_maximum_runaway=cfg.force_maximum_runaway,
+            force_maximum_snap=cfg.force_maximum_snap,
             stabilization_relax=cfg.stabilization_relax,
             stabilization_relax_decay=cfg.stabilization_relax_decay,
         ),

@@ -410,3 +410,41 @@ def test_the_script_grasps_a_tet_mesh_file_with_its_labels(tmp_path):
     # a bad solver key is an error that names it
     r = run(f"object={mesh_file}", "max_newton_first_step=-5", "device=cpu", f"out_dir={tmp_path}/bad")
     assert r.returncode != 0 and "max_newton_first_step must be None or an integer >= 0, got -5" in r.stderr
+
+
+def test_a_ramp_whose_object_passes_through_itself_at_its_last_step_is_failed():
+    """The data path flags a converged ramp whose last state passes through itself (the FEM has no
+    self-contact: a thin ring squeezed flat, e.g. annulus_ro30_ri25_h50 at 100 kPa, ends with 49 of its
+    surface vertices inside its own tets) STATUS_SELF_INTERSECTING (7), keeping its earlier steps' fields."""
+    from types import SimpleNamespace
+
+    from defgraspnets.fem import TetMesh
+
+    b = TetMesh.box(size=(1.0, 1.0, 1.0), divisions=(2, 2, 2))
+    n = b.num_vertices
+    two = TetMesh(np.vstack([b.points, b.points + [2.0, 0.0, 0.0]]), np.vstack([b.tets, b.tets + n]))
+    apart = np.zeros((2 * n, 3))
+    through = apart.copy()
+    through[n:] -= [1.7, 0.13, 0.07]
+
+    def eq(displacements):
+        u = np.stack(displacements)
+        return SimpleNamespace(
+            mesh=two, converged=np.ones(len(u), dtype=bool), status=np.zeros(len(u), dtype=np.int32),
+            inverted_tets=np.zeros(len(u), dtype=int), positions=two.points[None] + u, displacement=u,
+            von_mises=np.zeros((len(u), 2 * n)), dof_force={"grip": np.ones(len(u))},
+            travel={"grip": np.ones(len(u))},
+        )  # fmt: skip
+
+    out = datagen._empty_ramps(2, 2, 2 * n)
+    rows = np.array([0, 1])
+    datagen._record_steps(out, rows, np.array([0, 0]), eq([through, apart]), True, last_step=1)
+    np.testing.assert_array_equal(out["status"], [0, 0])  # (checked at the last step only)
+    datagen._record_steps(out, rows, np.array([1, 1]), eq([through, apart]), True, last_step=1)
+    assert out["status"].tolist() == [datagen.STATUS_SELF_INTERSECTING, 0]
+    assert (
+        np.isfinite(out["force"][0, 0]) and np.isnan(out["force"][0, 1]) and np.isfinite(out["force"][1, 1])
+    )
+    out = datagen._empty_ramps(1, 1, 2 * n)
+    datagen._record_steps(out, rows[:1], np.array([0]), eq([through]), False, last_step=0)
+    assert out["status"].tolist() == [0]  # reject_inverted=False keeps it

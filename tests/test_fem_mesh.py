@@ -92,3 +92,37 @@ def test_structured_box_is_conforming_and_mirror_symmetric():
         ref = {tuple(sorted(map(tuple, np.round(mirrored[t], 9)))) for t in m.tets}
         own = {tuple(sorted(map(tuple, np.round(m.points[t], 9)))) for t in m.tets}
         assert ref == own
+
+
+def _two_boxes():
+    b = TetMesh.box(size=(1.0, 1.0, 1.0), divisions=(2, 2, 2))
+    n = b.num_vertices
+    return TetMesh(np.vstack([b.points, b.points + [2.0, 0.0, 0.0]]), np.vstack([b.tets, b.tets + n])), n
+
+
+def test_surface_vertices_inside_finds_an_object_passing_through_itself():
+    """Two unit boxes of one mesh (a stand-in for the walls of a ring squeezed flat, which pass through each
+    other with no self-contact): apart or face to face nothing is inside; pushed 0.3 into each other, the
+    second box's surface vertices within the first are found, and only those."""
+    two, n = _two_boxes()
+    assert two.surface_vertices_inside(two.points).size == 0
+    x = two.points.copy()
+    x[n:] -= [1.0, 0.13, 0.07]  # face to face (touching)
+    assert two.surface_vertices_inside(x).size == 0
+    x = two.points.copy()
+    x[n:] -= [1.7, 0.13, 0.07]
+    inside = two.surface_vertices_inside(x)
+    # each box's surface vertices strictly within the other box, and only those
+    lo, hi = np.zeros(3), np.ones(3)
+    shifted_lo, shifted_hi = lo + [0.3, -0.13, -0.07], hi + [0.3, -0.13, -0.07]
+    eps = 1e-9
+    expected = [
+        v
+        for v in two.surface_vertices
+        if (v >= n and np.all((x[v] > lo + eps) & (x[v] < hi - eps)))
+        or (v < n and np.all((x[v] > shifted_lo + eps) & (x[v] < shifted_hi - eps)))
+    ]
+    assert len(expected) > 4 and any(v >= n for v in expected) and any(v < n for v in expected)
+    np.testing.assert_array_equal(inside, expected)
+    with pytest.raises(ValueError, match="points"):
+        two.surface_vertices_inside(x[:5])

@@ -358,7 +358,7 @@ def test_a_force_ramp_past_a_force_maximum_is_flagged_early_and_converging_ramps
 
     assert squeeze_solver_options().force_maximum_runaway == 3.0
     assert squeeze_solver_options().force_maximum_attempts == 2
-    flagged, reached, newton = ramp()
+    flagged, reached, newton = ramp(force_maximum_snap=0)  # (the snap retry: the next test)
     plain, plain_reached, plain_newton = ramp(force_maximum_runaway=0.0)
     S = fem.SolveStatus
     assert flagged[-1].status.tolist() == [S.FORCE_MAXIMUM, S.NOT_CONVERGED, S.CONVERGED, S.CONVERGED]
@@ -376,11 +376,52 @@ def test_a_force_ramp_past_a_force_maximum_is_flagged_early_and_converging_ramps
         np.testing.assert_array_equal(eq.von_mises[ok], ref.von_mises[ok])
 
 
+def test_a_runaway_that_snaps_to_another_branch_goes_on():
+    """The 262-vertex 60 x 40 x 20 mm slab at 10 kPa squeezed end to end (grasp 0, pads on the 40 x 20 faces,
+    60 mm apart): the column buckles at 2.1 N. The next force step's increments run the travel away, and
+    the early flag stopped the ramp there (FORCE_MAXIMUM). The local branch does have a force maximum, but
+    the buckled column carries more: one attempt of ``force_maximum_snap`` Newton iterations at the failing
+    increment jumps to it (the travel per pad 7.3 -> 21.7 mm at the same force, a buckled column that does
+    not pass through itself; counted in ``Equilibrium.snaps``), and the ramp goes on (its fold closes through
+    itself a step later: the FEM has no self-contact). Every step before the jump is the same bit for bit."""
+    from pathlib import Path
+
+    mesh = fem.TetMesh.load(Path(__file__).parent / "data" / "cuboid_60x40x20.vtu")
+    grasps = sample_antipodal_grasps(mesh, num_grasps=100, friction_coefficient=0.7, seed=0)[[0]]
+    soft = fem.Material(1e4, 0.3, 1000.0, model="neohookean")
+
+    def ramp(**overrides):
+        options = squeeze_solver_options(linear_solver="direct", **overrides)
+        solver = make_squeeze_solver(mesh, grasps, soft, 0.7, device="cpu", options=options)
+        eqs = squeeze_ramp(solver, 15.0, 50)
+        return eqs, sum(bool(eq.converged[0]) for eq in eqs)
+
+    S = fem.SolveStatus
+    stopped, stopped_reached = ramp(force_maximum_snap=0)
+    assert stopped[-1].status[0] == S.FORCE_MAXIMUM and stopped_reached == 7
+    assert all(eq.snaps[0] == 0 for eq in stopped)
+    snapped, reached = ramp(force_maximum_snap=400)
+    assert reached > stopped_reached
+    k = stopped_reached  # the step that snapped
+    assert [int(eq.snaps[0]) for eq in snapped[: k + 1]] == [0] * k + [1]
+    jump = snapped[k].travel["grip"][0] - snapped[k - 1].travel["grip"][0]
+    assert jump > 5 * (snapped[k - 1].travel["grip"][0] - snapped[k - 2].travel["grip"][0])
+    assert snapped[k].travel["grip"][0] < 0.03  # the pads stay apart (60 mm at first contact)
+    assert mesh.surface_vertices_inside(snapped[k].positions[0]).size == 0
+    for eq, ref in zip(snapped[:k], stopped[:k]):
+        np.testing.assert_array_equal(eq.displacement, ref.displacement)
+        np.testing.assert_array_equal(eq.travel["grip"], ref.travel["grip"])
+
+
 def test_force_maximum_options_are_checked():
     with pytest.raises(ValueError, match="force_maximum_runaway"):
         fem.SolverOptions(force_maximum_runaway=-1.0)
     with pytest.raises(ValueError, match="force_maximum_attempts"):
         fem.SolverOptions(force_maximum_attempts=0)
+    for bad in (-1, 2.5, True):
+        with pytest.raises(ValueError, match="force_maximum_snap"):
+            fem.SolverOptions(force_maximum_snap=bad)
+    assert fem.SolverOptions().force_maximum_snap == 0  # off in the engine
     assert fem.SolverOptions().force_maximum_runaway == 0.0  # off in the engine
     assert fem.SolveStatus.FORCE_MAXIMUM == 6
 

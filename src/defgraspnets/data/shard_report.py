@@ -14,7 +14,7 @@ from tqdm.auto import tqdm
 from defgraspnets.eval.metrics import ranking_agreement_across_moduli
 from defgraspnets.eval.report import markdown_table
 from defgraspnets.fem.results import SolveStatus
-from defgraspnets.grasp.datagen import STATUS_INVERTED
+from defgraspnets.grasp.datagen import STATUS_INVERTED, STATUS_SELF_INTERSECTING
 from defgraspnets.grasp.metrics import rigid_removed_deformation
 
 from .grasp_schema import GraspShard
@@ -22,7 +22,7 @@ from .grasp_schema import GraspShard
 __all__ = ["report_markdown", "shard_summary", "status_name"]
 
 # codes of /ramp/status besides the solver's
-_EXTRA_STATUS = {STATUS_INVERTED: "INVERTED"}
+_EXTRA_STATUS = {STATUS_INVERTED: "INVERTED", STATUS_SELF_INTERSECTING: "SELF_INTERSECTING"}
 
 
 def status_name(code: int) -> str:

@@ -323,6 +323,37 @@ class TetMesh:
         mask[self.surface_vertices] = True
         return mask
 
+    def surface_vertices_inside(self, points, tolerance: float = 1e-6) -> np.ndarray:
+        """Sorted indices of the surface vertices that lie strictly inside a tet they are no vertex of, at
+        the deformed ``points`` (N, 3): the object passes through itself there. The FEM has no self-contact,
+        so a collapsing hollow object (a thin ring squeezed flat) lets its walls pass through each other
+        with no resistance; such a state is no physical answer. ``tolerance``: barycentric margin, so a
+        vertex on another tet's face (flat faces pressed together, up to round-off) does not count."""
+        x = np.asarray(points, dtype=np.float64)
+        if x.shape != self.points.shape:
+            raise ValueError(f"points must be {self.points.shape}, got {x.shape}")
+        from scipy.spatial import cKDTree
+
+        T = self.tets
+        corners = x[T]  # (M, 4, 3)
+        centre = corners.mean(axis=1)
+        radius = float(np.linalg.norm(corners - centre[:, None], axis=2).max())
+        surf = self.surface_vertices
+        hits = cKDTree(centre).query_ball_point(x[surf], radius)
+        pairs = [(i, m) for i, cand in enumerate(hits) for m in cand]
+        if not pairs:
+            return np.zeros(0, dtype=np.int64)
+        vi, tm = np.array(pairs, dtype=np.int64).T
+        v = surf[vi]
+        own = np.any(T[tm] == v[:, None], axis=1)
+        v, tm = v[~own], tm[~own]
+        edges = np.transpose(corners[tm, 1:] - corners[tm, :1], (0, 2, 1))  # (P, 3, 3) columns = edges
+        with np.errstate(all="ignore"):
+            lam = np.linalg.solve(edges, (x[v] - corners[tm, 0])[..., None])[..., 0]
+        bary = np.concatenate([1.0 - lam.sum(axis=1, keepdims=True), lam], axis=1)
+        inside = np.all(bary > tolerance, axis=1)
+        return np.unique(v[inside])
+
     def face_normals(self, points=None) -> np.ndarray:
         """(F, 3) area vectors / |.|: unit outward normals of the surface faces (at ``points`` if given)."""
         p = self.points if points is None else np.asarray(points)

@@ -19,7 +19,7 @@ class SolveStatus(IntEnum):
     NOT_CONVERGED = 1  # Newton failed even at the smallest load increment
     ESCAPED = 2  # no equilibrium exists: the object ran away (slip, lost contact, unsupported load)
     NONFINITE = 3  # NaN or inf appeared
-    # (4 is the grasp generator's STATUS_INVERTED)
+    # (4 is the grasp generator's STATUS_INVERTED, 7 its STATUS_SELF_INTERSECTING)
     PINCHED = 5  # one vertex pressed from opposite sides by two bodies: a body passed between the vertices
     # the controlled force passed a maximum of the equilibrium path: a force-controlled increment's travel
     # ran away in repeated failed attempts (SolverOptions.force_maximum_runaway; else NOT_CONVERGED)
@@ -58,6 +58,9 @@ class Equilibrium:
     # (B,) largest vertex force of the increment stabilization at the last converged increment [N]
     # (SolverOptions.stabilization; zero when off)
     stabilization_force: np.ndarray | None = None
+    # (B,) load steps since the reset reached past a force maximum by a jump of the equilibrium path
+    # (SolverOptions.force_maximum_snap; zero when off)
+    snaps: np.ndarray | None = None
     # gas pressure (solvers with a pressure surface only)
     gauge_pressure: np.ndarray | None = None  # (B,) p(V) of the cavity [Pa]
     cavity_volume: np.ndarray | None = None  # (B,) V of the pressurized cavity (without V_h) [m^3]

@@ -209,6 +209,21 @@ class SolverOptions:
             value on the ramp): the cube gives way abruptly.
         force_maximum_attempts: runaway failed increments of one load step that flag FORCE_MAXIMUM (>= 1;
             see ``force_maximum_runaway``).
+        force_maximum_snap: S (0: off, the default), what a problem does once ``force_maximum_attempts``
+            runaways were counted in a load step: instead of being flagged FORCE_MAXIMUM at once it retries
+            the failing increment (not halved, friction lags frozen after the first iterations as in a first
+            attempt) with up to S Newton iterations per solve, and so does every later increment of the
+            problem, whose Newton budget per load step (``max_newton_per_solve``) grows by S. A runaway need
+            not end the path: past a limit point of its branch the path may *snap*, jump at the same force to
+            another equilibrium that carries more load; the runaway attempts were on their way there and
+            stopped after ``max_newton_iterations``. If the retry fails the problem is flagged FORCE_MAXIMUM
+            as before; if the load step is reached, the problem goes on and ``Equilibrium.snaps`` counts the
+            step. Ramps that never run away twice in a step are unchanged bit for bit. Measured (session 40,
+            2-core CPU, ``benchmarks/squeeze_soft_failures_cpu.md``): soft squeeze ramps flagged at 6.0 N
+            (cuboid_70x35x20, 10 kPa) and 11.7 N (cylinder_r20_h40, 21.5 kPa) reach 15 N with S = 200, the
+            object turned and slid between the pads by millimetres, but the states after the jump pass
+            through themselves (the FEM has no self-contact; ``TetMesh.surface_vertices_inside``): there it
+            buys nothing, and the squeeze path keeps it off.
         escape_fraction: object motion within one increment, as a fraction of the diagonal, that flags
             the problem ESCAPED (no equilibrium).
         regularization: diagonal shift relative to E h per vertex (removes floating rigid modes).
@@ -346,6 +361,7 @@ class SolverOptions:
     max_newton_first_step: int | None = None
     force_maximum_runaway: float = 0.0
     force_maximum_attempts: int = 2
+    force_maximum_snap: int = 0
     escape_fraction: float = 0.5
     regularization: float = 1e-10
     stabilization: float = 0.0
@@ -393,6 +409,9 @@ class SolverOptions:
                 "SolverOptions.force_maximum_attempts must be an int >= 1, "
                 f"got {self.force_maximum_attempts!r}"
             )
+        snap = self.force_maximum_snap
+        if isinstance(snap, bool) or not (isinstance(snap, (int, np.integer)) and snap >= 0):
+            raise ValueError(f"SolverOptions.force_maximum_snap must be an int >= 0, got {snap!r}")
         if self.max_newton_per_solve < 0:
             raise ValueError(
                 f"SolverOptions.max_newton_per_solve must be >= 0, got {self.max_newton_per_solve!r}"
@@ -550,6 +569,8 @@ class _LoadPath:
     relaxing: np.ndarray  # (B,) bool: Newton runs such a solve
     spring_scale: np.ndarray  # (B,) fraction of the stabilization springs in its solves (relax decay)
     anchored: np.ndarray  # (B,) bool: its reference (friction anchor) moved; the increment's start is kept
+    snapping: np.ndarray  # (B,) bool: the increment being solved is the force_maximum_snap attempt
+    snap_tried: np.ndarray  # (B,) bool: this load step had its force_maximum_snap attempt
 
     @classmethod
     def between(cls, start: dict, end: dict) -> _LoadPath:
@@ -575,6 +596,8 @@ class _LoadPath:
             relaxing=np.zeros(B, dtype=bool),
             spring_scale=np.ones(B),
             anchored=np.zeros(B, dtype=bool),
+            snapping=np.zeros(B, dtype=bool),
+            snap_tried=np.zeros(B, dtype=bool),
         )
 
     def begin(self, mask: np.ndarray, initial_fraction: float) -> None:
@@ -588,6 +611,8 @@ class _LoadPath:
         self.relag_every[mask] = False
         self.releasing[mask] = False
         self.relaxing[mask] = False
+        self.snapping[mask] = False
+        self.snap_tried[mask] = False
         self.spring_scale[mask] = 1.0
         self.anchored[mask] = False
         self.residual[mask] = 0.0
@@ -616,6 +641,8 @@ class _NewtonRun:
     damping: np.ndarray  # (B,) Levenberg-Marquardt factor of the exact Hessian
     stale_step: np.ndarray  # (B,) bool: chord Newton's last step came from a stale factor and was cut
     dof_targets: np.ndarray  # (B, D) |actuator force targets| (force scale of the tolerance)
+    cap: np.ndarray  # (B,) Newton iterations of a solve (since its last re-lag) before the increment fails
+    snap: np.ndarray  # (B,) bool: the increment is a force_maximum_snap attempt (cap: force_maximum_snap)
     max_step: float  # largest vertex or travel move per Newton step [m]
     escape: float  # object motion within one increment that flags ESCAPED [m]
 
@@ -643,6 +670,8 @@ class _NewtonRun:
             damping=np.zeros(B),
             stale_step=np.zeros(B, dtype=bool),
             dof_targets=np.zeros((B, num_dofs)),
+            cap=np.zeros(B, dtype=int),
+            snap=np.zeros(B, dtype=bool),
         )
 
 
@@ -1164,6 +1193,10 @@ class QuasiStaticSolver:
         self._gas_law[:] = 0.0
         self._gas_target[:] = 0.0
         self.status[:] = SolveStatus.CONVERGED
+        #: (B,) load steps since the reset reached past a force maximum by a snap (force_maximum_snap)
+        self.snaps = np.zeros(self.batch_size, dtype=int)
+        # (B,) bool: a snap attempt was made; every later increment gets its Newton iterations and budget
+        self._snapping = np.zeros(self.batch_size, dtype=bool)
         #: Newton passes of the batch since the reset (one assembly each, for every problem then iterating)
         self.newton_passes = 0
         self._stabilization_at_convergence = np.zeros(self.batch_size)
@@ -1316,6 +1349,8 @@ class QuasiStaticSolver:
         self._dof_target[into] = other._dof_target[rows]
         self._prescribed[into] = other._prescribed[rows]
         self.status[into] = other.status[rows]
+        self.snaps[into] = other.snaps[rows]
+        self._snapping[into] = other._snapping[rows]
         self._stabilization_at_convergence[into] = other._stabilization_at_convergence[rows]
         mine, theirs = self._load.arrays(B), other._load.arrays(Bo)
         for k in mine:
@@ -2436,6 +2471,7 @@ class QuasiStaticSolver:
         log.debug("load increment: fractions %s -> %s", path.lam_done[mask][:4], path.lam_try[mask][:4])
         step = path.change * (path.lam_try - path.lam_done)[:, None]
         self._start_increment(step, path.lam_try, path.start, path.end, mask)
+        run.snap[mask] = path.snapping[mask] | self._snapping[mask]
         self._newton_begin(run, mask)
 
     def _finish_increments(self, path: _LoadPath, run: _NewtonRun, done: np.ndarray) -> np.ndarray:
@@ -2473,8 +2509,14 @@ class QuasiStaticSolver:
                 for b in np.flatnonzero(good & anchored).tolist():
                     self._stick_start.pop(b, None)
             path.lam_done[good] = path.lam_try[good]
+            path.snapping[good] = False
             finished = good & (path.lam_done >= 1.0)
             self._load_steps[finished] += 1
+            snapped = finished & path.snap_tried  # the load step reached past its runaways
+            if snapped.any():
+                self.snaps[snapped] += 1
+                for b in np.flatnonzero(snapped).tolist():
+                    log.info("problem %d snapped: reached its load step past a force maximum", b)
             path.todo &= ~finished
             left |= finished
             grow = good & ~finished
@@ -2482,11 +2524,22 @@ class QuasiStaticSolver:
         if bad.any():
             if (bad & anchored).any():
                 self._unanchor(bad & anchored)
+            snap = np.zeros(self.batch_size, dtype=bool)  # problems that now get their snap attempt
+            snap_failed = bad & path.snapping  # a failed snap attempt ends the problem
+            path.snapping[bad] = False
             if o.force_maximum_runaway > 0:
                 # (the failed attempts' travels, before they are restored)
                 stalled = bad & (fail_status == SolveStatus.NOT_CONVERGED)
                 path.runaways[self._force_runaway(path, stalled)] += 1
-                fail_status[stalled & (path.runaways >= o.force_maximum_attempts)] = SolveStatus.FORCE_MAXIMUM
+                maximum = stalled & ((path.runaways >= o.force_maximum_attempts) | snap_failed)
+                if o.force_maximum_snap > 0:
+                    # one more attempt at the same increment with force_maximum_snap Newton iterations
+                    snap = maximum & ~path.snap_tried
+                    path.snapping[snap] = True
+                    path.snap_tried[snap] = True
+                    self._snapping[snap] = True  # and every later increment of the problem
+                    maximum &= ~snap
+                fail_status[maximum] = SolveStatus.FORCE_MAXIMUM
             self._restore(bad)
             if (bad & anchored).any():
                 self._commit_body_reference(bad & anchored)  # (placed by the restored travels)
@@ -2498,6 +2551,7 @@ class QuasiStaticSolver:
                 | tiny
                 | (fail_status == SolveStatus.NONFINITE)
                 | (fail_status == SolveStatus.FORCE_MAXIMUM)
+                | snap_failed
             )
             for b in np.nonzero(giveup)[0]:
                 self.status[b] = fail_status[b]
@@ -2510,9 +2564,13 @@ class QuasiStaticSolver:
             path.todo &= ~giveup
             left |= giveup
             retry = bad & ~giveup
-            path.lam_try[retry] = 0.5 * (path.lam_done[retry] + path.lam_try[retry])
+            halve = retry & ~snap  # (the snap attempt retries the same increment)
+            path.lam_try[halve] = 0.5 * (path.lam_done[halve] + path.lam_try[halve])
             if o.relag_friction_on_retry:  # from the k-th failed attempt of the step on (True: k = 1)
-                path.relag_every |= retry & (path.bisections >= int(o.relag_friction_on_retry))
+                path.relag_every |= halve & (path.bisections >= int(o.relag_friction_on_retry))
+            # the snap attempt freezes its friction lags after the first iterations, as a first attempt does
+            path.relag_every[snap] = False
+        newton_budget = self._newton_budget()  # (with the snap attempts' allowance granted above)
         if newton_budget.any():
             spent = path.todo & done & (newton_budget > 0) & (path.newton_total >= newton_budget)
             for b in np.nonzero(spent)[0]:
@@ -2529,10 +2587,13 @@ class QuasiStaticSolver:
 
     def _newton_budget(self) -> np.ndarray:
         """(B,) Newton budget of each problem's current load step (0: none): ``max_newton_first_step`` for a
-        problem that has not finished a load step since its rest state, else ``max_newton_per_solve``."""
+        problem that has not finished a load step since its rest state, else ``max_newton_per_solve``; plus
+        ``force_maximum_snap`` for a problem that made a snap attempt."""
         o = self.options
         first = o.max_newton_per_solve if o.max_newton_first_step is None else o.max_newton_first_step
-        return np.where(self._load_steps == 0, first, o.max_newton_per_solve)
+        budget = np.where(self._load_steps == 0, first, o.max_newton_per_solve)
+        # a problem that made a force_maximum_snap attempt gets its iterations on top of a finite budget
+        return np.where((budget > 0) & self._snapping, budget + o.force_maximum_snap, budget)
 
     def _force_runaway(self, path: _LoadPath, mask: np.ndarray) -> np.ndarray:
         """(B,) bool: the masked problems' failed increments (their states not yet restored) raised the force
@@ -2595,6 +2656,11 @@ class QuasiStaticSolver:
         B, D = self.batch_size, self.num_dofs
         run.working |= mask
         run.started |= mask
+        o = self.options
+        # (the stabilized solve, its release and relax solves of a snap attempt all get its cap)
+        run.cap[mask] = np.where(
+            run.snap[mask], max(o.force_maximum_snap, o.max_newton_iterations), o.max_newton_iterations
+        )
         run.ok[mask] = False
         run.status[mask] = SolveStatus.NOT_CONVERGED
         run.passes[mask] = 0
@@ -2623,7 +2689,7 @@ class QuasiStaticSolver:
         sysm = self.system
         working = run.working
         # a safety bound on the passes of one Newton solve (each problem's own budgets end it first)
-        working &= run.passes < (o.max_newton_iterations + 1) * (o.max_friction_relags + 1)
+        working &= run.passes < (run.cap + 1) * (o.max_friction_relags + 1)
         if not working.any():
             return
         run.passes[working] += 1
@@ -2688,7 +2754,7 @@ class QuasiStaticSolver:
         if not working.any():
             return
         # a problem out of Newton iterations since its last re-lag fails this increment (the others go on)
-        working &= (run.iters - run.last_relag) < o.max_newton_iterations
+        working &= (run.iters - run.last_relag) < run.cap
         if not working.any():
             return
         run.iters[working] += 1
@@ -3098,5 +3164,6 @@ class QuasiStaticSolver:
             reaction_force=reaction,
             tet_stress=ts,
             stabilization_force=self._stabilization_at_convergence[rows],
+            snaps=self.snaps[rows].copy(),
             **gas,
         )

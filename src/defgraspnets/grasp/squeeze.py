@@ -208,6 +208,16 @@ def squeeze_solver_options(**overrides) -> fem.SolverOptions:
     are no force maximum stay NOT_CONVERGED. The data sets leave the ramp out either way; its fields up
     to the last force reached do not change. ``force_maximum_runaway=0.0`` turns it off.
 
+    On soft objects these runaways mark where the object starts to fold onto itself, which the FEM (no
+    self-contact) lets it do (session 40, ``benchmarks/squeeze_soft_failures_cpu.md``): cuboid_70x35x20 at
+    10 kPa, grasp 0, flagged at 6.0 N (its force was still rising at 1.6 N/mm under travel control), and
+    cylinder_r20_h40 at 21.5 kPa, grasp 0, flagged at 11.7 N, both reach 15 N when their increments get 200
+    Newton iterations (``force_maximum_snap``: the path jumps at the same force, the object turns and
+    slides between the pads by millimetres), but the states after the jump pass through themselves (25-35
+    surface vertices inside the object's own tets, none before it). So the flag stays the squeeze path's
+    answer (``force_maximum_snap`` = 0 here): those ramps are no data either way, and the data path would fail
+    the jumped ones as self-intersecting (``STATUS_SELF_INTERSECTING``) after 2-4 times the Newton iterations.
+
     A stiff curved object whose first contact is a point must still roll into the grasp: its stabilized first
     increment converges, but the released solve stalls on the near-free rigid mode the springs held
     (``benchmarks/squeeze_torus_first_step_cpu.md``). Since session 39 the released solve's failure is
@@ -259,6 +269,7 @@ def squeeze_solver_options(**overrides) -> fem.SolverOptions:
             "stabilization_release": True,
             "force_maximum_runaway": 3.0,
             "force_maximum_attempts": 2,
+            "force_maximum_snap": 0,
             "stabilization_relax": 40,
             "stabilization_relax_decay": 0.25,
             **overrides,
