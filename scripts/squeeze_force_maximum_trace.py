@@ -1,9 +1,13 @@
 """Per-increment trace of squeeze ramps (benchmarks/squeeze_force_maximum_cpu.md): one grasp per solver,
 0-15 N in ``steps`` steps, every load increment's Newton iterations, wall time, target force and the grip's
-travel at the end of the attempt (converged or not), written as JSON.
+travel at the end of the attempt (converged or not), written as JSON; with ``geometry=true`` also the state
+Newton left the attempt in, before a failed one is restored (benchmarks/squeeze_soft_failures_cpu.md): the
+largest vertex move in the increment, the object's drift across the grasp axis, its rigid turn and min det F.
 
     python scripts/squeeze_force_maximum_trace.py youngs_modulus=1e4 'grasps=[16,64]' out=trace.json
     python scripts/squeeze_force_maximum_trace.py mesh=cuboid_30x30x30 'solver={force_maximum_runaway: 0.0}'
+    python scripts/squeeze_force_maximum_trace.py mesh=cuboid_70x35x20 geometry=true \
+        'solver={force_maximum_runaway: 0.0}'
 
 Config: configs/squeeze_force_maximum_trace.yaml. Uses the solver's private load-stepping hooks.
 """
@@ -13,11 +17,18 @@ import time
 from pathlib import Path
 
 import hydra
+import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from defgraspnets import fem
+from defgraspnets.grasp.diagnostics import deformation_jacobians, rigid_turn
 from defgraspnets.grasp.sampler import sample_antipodal_grasps
-from defgraspnets.grasp.squeeze import make_squeeze_solver, squeeze_ramp, squeeze_solver_options
+from defgraspnets.grasp.squeeze import (
+    finger_contact_poses,
+    make_squeeze_solver,
+    squeeze_ramp,
+    squeeze_solver_options,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -52,7 +63,10 @@ def main(cfg: DictConfig) -> None:
             started[0] = time.perf_counter()
             return begin(path, run, mask)
 
-        def spy_finish(path, run, done, finish=finish, attempts=attempts, started=started, solver=solver):
+        closing = finger_contact_poses(grasps[[g]])[0, 0, :3, 1]  # the grasp axis
+
+        def spy_finish(path, run, done, finish=finish, attempts=attempts, started=started, solver=solver,
+                       closing=closing):  # fmt: skip
             D = solver.num_dofs
             attempts.append(
                 dict(
@@ -68,6 +82,17 @@ def main(cfg: DictConfig) -> None:
                     t=time.perf_counter() - started[0],
                 )
             )
+            if cfg.geometry:  # the state Newton left (not yet restored where the attempt failed)
+                N = mesh.num_vertices
+                x = solver._positions.numpy()[:N].astype(np.float64)
+                x_start = solver._positions_ref.numpy()[:N].astype(np.float64)
+                drift = (x - mesh.points).mean(axis=0)
+                attempts[-1].update(
+                    max_move=float(np.linalg.norm(x - x_start, axis=1).max()),
+                    drift=float(np.linalg.norm(drift - (drift @ closing) * closing)),
+                    turn_deg=float(np.degrees(rigid_turn(mesh, x)[0])),
+                    min_det_f=float(deformation_jacobians(mesh, x).min()),
+                )
             return finish(path, run, done)
 
         solver._finish_increments, solver._begin_increments = spy_finish, spy_begin
