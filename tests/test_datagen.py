@@ -448,3 +448,34 @@ def test_a_ramp_whose_object_passes_through_itself_at_its_last_step_is_failed():
     out = datagen._empty_ramps(1, 1, 2 * n)
     datagen._record_steps(out, rows[:1], np.array([0]), eq([through]), False, last_step=0)
     assert out["status"].tolist() == [0]  # reject_inverted=False keeps it
+
+
+def test_a_broken_object_file_is_an_error_naming_the_file_and_its_problem(tmp_path):
+    """``object=<file>``: a surface with NaN coordinates is reported as such (trimesh's processing would drop
+    those vertices and report a hole), a file of no mesh format and an unreadable tet file name the file."""
+    import trimesh
+
+    from defgraspnets.objects import ObjectMeshError
+
+    box = trimesh.creation.box((0.03, 0.03, 0.03))
+    v = box.vertices.copy()
+    v[5, 1] = np.nan
+    obj = tmp_path / "nan_box.obj"
+    obj.write_text(
+        "".join(f"v {a} {b} {c}\n" for a, b, c in v)
+        + "".join(f"f {a} {b} {c}\n" for a, b, c in box.faces + 1)
+    )
+    with pytest.raises(
+        ObjectMeshError, match=r"nan_box\.obj: non-finite \(NaN or inf\) coordinates at vertices \[5\]"
+    ):
+        datagen.resolve_object_mesh(str(obj), mesher="gmsh", cache_dir=tmp_path)
+    txt = tmp_path / "points.txt"
+    txt.write_text("1 2 3\n")
+    with pytest.raises(
+        ObjectMeshError, match=r"points\.txt: unknown mesh format '\.txt'; expected a tet mesh"
+    ):
+        datagen.resolve_object_mesh(str(txt))
+    vtu = tmp_path / "broken.vtu"
+    vtu.write_text("not a mesh\n")
+    with pytest.raises(ValueError, match=r"broken\.vtu: not a readable tet mesh file"):
+        datagen.resolve_object_mesh(str(vtu))

@@ -160,7 +160,8 @@ def resolve_object_mesh(
 
     Raises:
         FileNotFoundError: ``spec`` looks like a path but no file is there.
-        ValueError: neither a registry name nor a file.
+        ValueError: neither a registry name nor a file; a file of no mesh format, unreadable, or whose
+            vertices are not finite (:class:`~defgraspnets.objects.ObjectMeshError`, naming the file).
     """
     if spec == "box":
         return structured_box(box_size, box_divisions)
@@ -172,8 +173,26 @@ def resolve_object_mesh(
             return fem.TetMesh.load(path, name=path.stem)
         import trimesh
 
-        from defgraspnets.objects import tetrahedralize
+        from defgraspnets.objects import ObjectMeshError, tetrahedralize
 
+        if path.suffix.lower().lstrip(".") not in trimesh.available_formats():
+            raise ObjectMeshError(
+                f"{path}: unknown mesh format {path.suffix!r}; expected a tet mesh "
+                f"({', '.join(_TET_SUFFIXES)}) or a closed surface (.stl, .obj, .ply, .off, .glb, ...: "
+                "trimesh.available_formats())"
+            )
+        try:
+            # unprocessed first: trimesh's processing drops NaN vertices with their faces, which would
+            # report the broken coordinates as a hole
+            raw = trimesh.load(path, force="mesh", process=False)
+        except Exception as e:
+            raise ObjectMeshError(f"{path}: not a readable surface mesh ({type(e).__name__}: {e})") from e
+        bad = np.flatnonzero(~np.isfinite(np.asarray(raw.vertices)).all(axis=1))
+        if bad.size:
+            shown = ", ".join(str(i) for i in bad[:8]) + (", ..." if bad.size > 8 else "")
+            raise ObjectMeshError(
+                f"{path}: non-finite (NaN or inf) coordinates at vertices [{shown}] ({bad.size} in all)"
+            )
         surface = trimesh.load(path, force="mesh")
         return tetrahedralize(surface, target_nodes, mesher, cache_dir=cache_dir, name=path.stem)
     return load_object_mesh(spec, target_nodes, mesher, cache_dir)[0]
