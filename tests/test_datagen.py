@@ -324,11 +324,29 @@ def test_a_killed_stream_resumes_with_the_unwritten_ramps(tmp_path, monkeypatch)
         (dict(moduli_per_object=0), "moduli_per_object"),
         (dict(moduli_per_object=3), "moduli_per_object"),
         (dict(moduli_per_object=1.5), "moduli_per_object"),
+        # wrong types name the key (were numpy's "could not convert string to float" or a TypeError)
+        (
+            dict(youngs_modulus=["abc"]),
+            r"youngs_modulus must be a number or a list of numbers \[Pa\], got \['abc'\]",
+        ),
+        (dict(youngs_modulus="abc"), "youngs_modulus must be a number or a list of numbers"),
+        (dict(poisson_ratio="abc"), "poisson_ratio must be a number, got 'abc' \\(str\\)"),
+        (dict(num_grasps="3"), "num_grasps must be a number"),
+        (dict(density=None), "density must be a number, got None"),
     ],
 )
 def test_bad_input_raises(tmp_path, kw, match):
     with pytest.raises(ValueError, match=match):
         _generate(tmp_path, **kw)
+
+
+def test_an_out_dir_that_is_a_file_is_named_before_any_work(tmp_path):
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    with pytest.raises(NotADirectoryError, match=f"out_dir {afile} is a file, not a directory"):
+        _generate(afile)
+    with pytest.raises(NotADirectoryError, match=f"out_dir {afile}/sub lies under {afile}, which is a file"):
+        _generate(afile / "sub")
 
 
 def test_unknown_object_raises(tmp_path):

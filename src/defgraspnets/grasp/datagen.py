@@ -284,7 +284,35 @@ def object_moduli(
     return [moduli[i] for i in chosen]
 
 
+def _check_out_dir(out_dir: Path) -> None:
+    """Raise unless ``out_dir`` is, or can be made, a writable directory (naming what is in the way)."""
+    existing = out_dir
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        what = "is" if existing == out_dir else f"lies under {existing}, which is"
+        raise NotADirectoryError(f"out_dir {out_dir} {what} a file, not a directory")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise PermissionError(f"out_dir {out_dir}: {existing} is not writable")
+
+
+def _is_number(value) -> bool:
+    """A real number (int, float, a numpy scalar or 0-d array of either); not a string, bool or container."""
+    try:
+        return np.ndim(value) == 0 and np.asarray(value).dtype.kind in "iuf"
+    except (TypeError, ValueError):
+        return False
+
+
 def _check_inputs(moduli, num_grasps, steps, max_force, friction, poisson_ratio, density, shard_count):
+    listed = isinstance(moduli, (Sequence, np.ndarray)) and not isinstance(moduli, (str, bytes))
+    if not all(_is_number(e) for e in (np.asarray(moduli).reshape(-1) if listed else [moduli])):
+        raise ValueError(f"youngs_modulus must be a number or a list of numbers [Pa], got {moduli!r}")
+    named = dict(num_grasps=num_grasps, steps=steps, max_force=max_force, friction=friction,
+                 poisson_ratio=poisson_ratio, density=density, shard_count=shard_count)  # fmt: skip
+    for key, value in named.items():
+        if not _is_number(value):
+            raise ValueError(f"{key} must be a number, got {value!r} ({type(value).__name__})")
     moduli = np.atleast_1d(np.asarray(moduli, dtype=np.float64))
     if moduli.ndim != 1 or moduli.size == 0:
         raise ValueError(f"youngs_modulus must be a non-empty list of moduli [Pa], got {moduli!r}")
@@ -881,6 +909,7 @@ def generate_object_shards(
     object_moduli("", moduli, moduli_per_object)  # a bad count fails before the object is meshed
     layout = experiment_layout(names, settings) if names else None
     out_dir = Path(out_dir)
+    _check_out_dir(out_dir)  # before the object is meshed and its grasps simulated
     if isinstance(obj, fem.TetMesh):
         mesh = obj
     elif isinstance(obj, str):
