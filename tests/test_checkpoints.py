@@ -54,3 +54,20 @@ def test_wrench_module_names_a_broken_or_wrong_checkpoint(broken):
     )
     with pytest.raises(CheckpointError, match=wrong):
         WrenchRegressionModule.from_checkpoint(GRASP_CKPT)
+
+
+def test_train_checks_the_checkpoint_against_its_model_class(broken):
+    """``python train.py ckpt_path=...`` (check_checkpoint_for): was Lightning's unpickling error at fit."""
+    from defgraspnets.models.checkpoints import check_checkpoint_for
+
+    garbage, truncated = broken
+    grasp_target = "defgraspnets.models.defgraspnets_module.DefGraspNetsModule"
+    check_checkpoint_for(GRASP_CKPT, grasp_target)
+    check_checkpoint_for(WRENCH_CKPT, "defgraspnets.models.wrench_module.WrenchRegressionModule")
+    with pytest.raises(CheckpointError, match="truncated.ckpt: not a readable PyTorch checkpoint"):
+        check_checkpoint_for(truncated, grasp_target)
+    with pytest.raises(CheckpointError, match="not a DefGraspNetsModule checkpoint"):
+        check_checkpoint_for(WRENCH_CKPT, grasp_target)
+    check_checkpoint_for(garbage, "some.other.Module")  # other classes: existence only
+    with pytest.raises(FileNotFoundError):
+        check_checkpoint_for(garbage.with_name("missing.ckpt"), "some.other.Module")

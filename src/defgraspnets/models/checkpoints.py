@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["CheckpointError", "checkpoint_kind", "read_checkpoint"]
+__all__ = ["CheckpointError", "check_checkpoint_for", "checkpoint_kind", "read_checkpoint"]
 
 
 class CheckpointError(ValueError):
@@ -70,3 +70,19 @@ def read_checkpoint(path, expected: str, map_location="cpu") -> dict:
         holds = f"it holds a {kind}" if kind else "its state_dict matches no model of this project"
         raise CheckpointError(f"{path}: not a {expected} checkpoint ({holds})")
     return checkpoint
+
+
+def check_checkpoint_for(path, model_target: str) -> None:
+    """Before a fit resumes from (or a test loads) ``path``: raise :class:`CheckpointError` unless it is a
+    readable checkpoint of the model class ``model_target`` (a Hydra ``_target_``, e.g.
+    ``defgraspnets.models.defgraspnets_module.DefGraspNetsModule``); models of other classes only need the
+    file to exist.
+
+    Raises:
+        FileNotFoundError, CheckpointError: as :func:`read_checkpoint`.
+    """
+    kind = str(model_target).rsplit(".", 1)[-1]
+    if kind in _KINDS:
+        read_checkpoint(path, kind)
+    elif not Path(path).is_file():
+        raise FileNotFoundError(f"checkpoint not found: {path}")
