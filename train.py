@@ -104,6 +104,10 @@ def train(cfg: DictConfig) -> dict[str, float]:
     L.seed_everything(cfg.seed, workers=True)
     if cfg.get("ckpt_path") and not Path(cfg.ckpt_path).exists():
         raise FileNotFoundError(f"ckpt_path not found: {cfg.ckpt_path}")
+    if cfg.get("ckpt_path"):  # a truncated file or the other model's checkpoint, named before any work
+        from defgraspnets.models.checkpoints import check_checkpoint_for
+
+        check_checkpoint_for(cfg.ckpt_path, cfg.model._target_)
     log.info("instantiating datamodule <%s>", cfg.data._target_)
     datamodule = hydra.utils.instantiate(cfg.data)
     log.info("instantiating model <%s>", cfg.model._target_)

@@ -52,7 +52,9 @@ def main(cfg: DictConfig) -> None:
         obj,
         **labels,
         out_dir=cfg.out_dir,
-        youngs_modulus=list(cfg.youngs_modulus),
+        youngs_modulus=OmegaConf.to_object(cfg.youngs_modulus)
+        if OmegaConf.is_list(cfg.youngs_modulus)
+        else cfg.youngs_modulus,
         moduli_per_object=cfg.moduli_per_object,
         all_moduli_objects=list(cfg.all_moduli_objects),
         num_grasps=cfg.num_grasps,

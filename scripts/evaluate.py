@@ -31,15 +31,13 @@ PARTS = ("test", "val", "train", "all")
 def load(ckpt_path: str, cfg: DictConfig, device):
     """(predictor module, datamodule) of a checkpoint, the datamodule with ``cfg.data`` overrides; for
     ``cfg.part == "train"`` its training part holds the evaluation steps (not the training steps)."""
-    import torch
 
     from defgraspnets.data.datamodule import GraspDataModule
+    from defgraspnets.models.checkpoints import read_checkpoint
     from defgraspnets.models.defgraspnets_module import DefGraspNetsModule
 
     path = Path(ckpt_path)
-    if not path.exists():
-        raise FileNotFoundError(f"checkpoint not found: {path}")
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    ckpt = read_checkpoint(path, "DefGraspNetsModule")  # names a missing, unreadable or wrong-model file
     dm_hparams = dict(ckpt.get("datamodule_hyper_parameters") or {})
     if not dm_hparams:
         raise KeyError(f"{path}: no datamodule hyperparameters stored (was it trained with GraspDataModule?)")

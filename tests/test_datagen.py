@@ -324,11 +324,29 @@ def test_a_killed_stream_resumes_with_the_unwritten_ramps(tmp_path, monkeypatch)
         (dict(moduli_per_object=0), "moduli_per_object"),
         (dict(moduli_per_object=3), "moduli_per_object"),
         (dict(moduli_per_object=1.5), "moduli_per_object"),
+        # wrong types name the key (were numpy's "could not convert string to float" or a TypeError)
+        (
+            dict(youngs_modulus=["abc"]),
+            r"youngs_modulus must be a number or a list of numbers \[Pa\], got \['abc'\]",
+        ),
+        (dict(youngs_modulus="abc"), "youngs_modulus must be a number or a list of numbers"),
+        (dict(poisson_ratio="abc"), "poisson_ratio must be a number, got 'abc' \\(str\\)"),
+        (dict(num_grasps="3"), "num_grasps must be a number"),
+        (dict(density=None), "density must be a number, got None"),
     ],
 )
 def test_bad_input_raises(tmp_path, kw, match):
     with pytest.raises(ValueError, match=match):
         _generate(tmp_path, **kw)
+
+
+def test_an_out_dir_that_is_a_file_is_named_before_any_work(tmp_path):
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    with pytest.raises(NotADirectoryError, match=f"out_dir {afile} is a file, not a directory"):
+        _generate(afile)
+    with pytest.raises(NotADirectoryError, match=f"out_dir {afile}/sub lies under {afile}, which is a file"):
+        _generate(afile / "sub")
 
 
 def test_unknown_object_raises(tmp_path):
@@ -448,3 +466,34 @@ def test_a_ramp_whose_object_passes_through_itself_at_its_last_step_is_failed():
     out = datagen._empty_ramps(1, 1, 2 * n)
     datagen._record_steps(out, rows[:1], np.array([0]), eq([through]), False, last_step=0)
     assert out["status"].tolist() == [0]  # reject_inverted=False keeps it
+
+
+def test_a_broken_object_file_is_an_error_naming_the_file_and_its_problem(tmp_path):
+    """``object=<file>``: a surface with NaN coordinates is reported as such (trimesh's processing would drop
+    those vertices and report a hole), a file of no mesh format and an unreadable tet file name the file."""
+    import trimesh
+
+    from defgraspnets.objects import ObjectMeshError
+
+    box = trimesh.creation.box((0.03, 0.03, 0.03))
+    v = box.vertices.copy()
+    v[5, 1] = np.nan
+    obj = tmp_path / "nan_box.obj"
+    obj.write_text(
+        "".join(f"v {a} {b} {c}\n" for a, b, c in v)
+        + "".join(f"f {a} {b} {c}\n" for a, b, c in box.faces + 1)
+    )
+    with pytest.raises(
+        ObjectMeshError, match=r"nan_box\.obj: non-finite \(NaN or inf\) coordinates at vertices \[5\]"
+    ):
+        datagen.resolve_object_mesh(str(obj), mesher="gmsh", cache_dir=tmp_path)
+    txt = tmp_path / "points.txt"
+    txt.write_text("1 2 3\n")
+    with pytest.raises(
+        ObjectMeshError, match=r"points\.txt: unknown mesh format '\.txt'; expected a tet mesh"
+    ):
+        datagen.resolve_object_mesh(str(txt))
+    vtu = tmp_path / "broken.vtu"
+    vtu.write_text("not a mesh\n")
+    with pytest.raises(ValueError, match=r"broken\.vtu: not a readable tet mesh file"):
+        datagen.resolve_object_mesh(str(vtu))

@@ -81,6 +81,17 @@ def test_missing_file_is_a_clear_error(tmp_path):
         TetMesh.load(tmp_path / "nope.vtu")
 
 
+@pytest.mark.parametrize("suffix", [".vtu", ".msh", ".vtk"])
+def test_unreadable_file_is_a_mesh_error_naming_it(tmp_path, suffix):
+    # meshio's .vtu reader calls sys.exit on a malformed file: that must not end the caller's process
+    path = tmp_path / f"broken{suffix}"
+    path.write_text("not a mesh\n")
+    with pytest.raises(MeshError, match=f"broken\\{suffix}: not a readable tet mesh file"):
+        TetMesh.load(path)
+    with pytest.raises(MeshError, match="not a file"):
+        TetMesh.load(tmp_path)
+
+
 def test_structured_box_is_conforming_and_mirror_symmetric():
     m = TetMesh.box(size=(2.0, 2.0, 2.0), divisions=(4, 4, 2), origin=(-1.0, -1.0, -1.0))
     # conforming: every interior face is shared by exactly two tets (boundary = the 6 box faces)

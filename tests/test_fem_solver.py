@@ -188,6 +188,32 @@ def test_bad_material_and_options():
         fem.Material(1e5, 0.3, -1.0)
     with pytest.raises(ValueError, match="linear_solver"):
         fem.SolverOptions(linear_solver="magic")
+    # a number given as a string names the field (was numpy's "ufunc 'isfinite' not supported")
+    with pytest.raises(fem.MaterialError, match="youngs_modulus must be a finite number, got '1e6'"):
+        fem.Material("1e6")
+    with pytest.raises(fem.MaterialError, match="poisson_ratio must be a finite number, got 'abc'"):
+        fem.Material(1e6, "abc")
+
+
+def test_bad_solver_set_up_names_the_argument():
+    """Wrong types at QuasiStaticSolver's boundary (were "not iterable" or AttributeError deep inside)."""
+    mesh = fem.TetMesh.box(size=(L, L, L), divisions=(1, 1, 1))
+    floor = fem.RigidBody("floor", fem.Plane())
+    with pytest.raises(
+        TypeError, match=r"bodies must be a list of RigidBody instances, got RigidBody \(wrap"
+    ):
+        fem.QuasiStaticSolver(mesh, floor, device="cpu")
+    with pytest.raises(TypeError, match="bodies must be RigidBody instances, got str 'floor'"):
+        fem.QuasiStaticSolver(mesh, ["floor"], device="cpu")
+    with pytest.raises(TypeError, match="material must be a Material or a list of 1 Materials, got float"):
+        fem.QuasiStaticSolver(mesh, [floor], 1e5, device="cpu")
+    solver = fem.QuasiStaticSolver(mesh, (b for b in [floor]), device="cpu")  # any iterable of bodies
+    assert [b.name for b in solver.bodies] == ["floor"]
+    # a plane without a direction (was accepted, NaN frames later)
+    with pytest.raises(fem.BodyError, match="Plane normal must be a non-zero vector"):
+        fem.Plane(normal=(0, 0, 0))
+    with pytest.raises(fem.BodyError, match="Plane point must be 3 finite numbers"):
+        fem.Plane(point=(float("nan"), 0, 0))
 
 
 def test_bad_bodies_and_targets():
@@ -213,6 +239,8 @@ def test_bad_bodies_and_targets():
         solver.solve(targets={"grip": 1.0})
     with pytest.raises(ValueError, match="finite"):
         solver.solve(targets={"top": float("nan")})
+    with pytest.raises(ValueError, match="target 'top' must be a number or 1 numbers, got 'abc'"):
+        solver.solve(targets={"top": "abc"})
     with pytest.raises(KeyError, match="no rigid body named"):
         solver.set_body_pose("finger", np.eye(4))
     bad_pose = np.eye(4)

@@ -58,3 +58,6 @@ def test_get_object_metadata_and_copy():
 def test_unknown_object_name():
     with pytest.raises(KeyError, match="unknown object 'torus_huge'.*similar: torus_"):
         get_object("torus_huge")
+    # a name that is no string (an unset config value) says so (was "'NoneType' object has no attribute ...")
+    with pytest.raises(TypeError, match="object name must be a string .*got None"):
+        get_object(None)

@@ -279,6 +279,11 @@ def test_planner_rejects_bad_input(predictor64, box, grasps):
         planner.score(grasps.poses[0])
     with pytest.raises(ValueError, match="youngs_modulus"):
         GraspPlanner(predictor64, box, -1.0, PRESETS["min_max_stress"])
+    # a string (plan.py youngs_modulus=abc) names the key (was math.isfinite's "must be real number, not str")
+    with pytest.raises(ValueError, match="youngs_modulus must be a number, got 'abc'"):
+        GraspPlanner(predictor64, box, "abc", PRESETS["min_max_stress"])
+    with pytest.raises(ValueError, match="force must be a number, got None"):
+        GraspPlanner(predictor64, box, 2e5, PRESETS["min_max_stress"], force=None)
     with pytest.raises(ValueError, match="sense"):
         planner.refine(grasps.poses[:2], steps=1, sense="down")
 

@@ -310,6 +310,9 @@ def test_bad_indentations_are_rejected(open_sim):
         open_sim.indent([Indentation(Pose((0.3, 0.0, 0.3)), 0.001)])  # misses the sensor
     with pytest.raises(ValueError, match="1 to 2"):
         open_sim.indent([open_sim.pole_indentation(0.001)] * 3)
+    # datagen/tactile.py friction=abc (was numpy's "ufunc 'isfinite' not supported")
+    with pytest.raises(ValueError, match="friction must be finite and >= 0, got 'abc'"):
+        MembraneSimulator(open_sim.sensor, SPHERE, _gas(open_sim.sensor), friction="abc")
 
 
 def test_box_pressed_at_the_pole_pushes_back_axially_and_symmetrically(sensor):

@@ -97,6 +97,10 @@ class Plane:
     point: tuple = (0.0, 0.0, 0.0)
     normal: tuple = (0.0, 0.0, 1.0)
 
+    def __post_init__(self):
+        _vec3(self.point, "Plane point")
+        _unit(self.normal, "Plane normal")
+
     def shape_frame(self) -> np.ndarray:
         return frame_from_z(self.point, self.normal)
 

@@ -59,7 +59,7 @@ class Material:
             raise MaterialError(f"model must be one of {', '.join(MATERIAL_MODELS)}, got {self.model!r}")
         for name in ("youngs_modulus", "poisson_ratio", "density"):
             value = getattr(self, name)
-            if not np.isscalar(value) or not np.isfinite(value):
+            if isinstance(value, (str, bytes, bool)) or not np.isscalar(value) or not np.isfinite(value):
                 raise MaterialError(f"{name} must be a finite number, got {value!r}")
             object.__setattr__(self, name, float(value))
         if not 1e3 <= self.youngs_modulus <= 1e12:

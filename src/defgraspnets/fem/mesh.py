@@ -198,7 +198,14 @@ class TetMesh:
         path = Path(path)
         if not path.exists():
             raise FileNotFoundError(f"tet mesh file not found: {path}")
-        return cls.from_meshio(meshio.read(path), name=name or path.stem)
+        if not path.is_file():
+            raise MeshError(f"{path}: not a file (a tet mesh file such as .vtu or .msh was expected)")
+        try:
+            data = meshio.read(path)
+        except (Exception, SystemExit) as e:  # meshio's XML readers call sys.exit on a malformed file
+            detail = f"{type(e).__name__}: {e}" if not isinstance(e, SystemExit) else "malformed file"
+            raise MeshError(f"{path}: not a readable tet mesh file ({detail})") from e
+        return cls.from_meshio(data, name=name or path.stem)
 
     def to_meshio(self, point_data: dict | None = None, cell_data: dict | None = None, points=None):
         """A :class:`meshio.Mesh` (optionally at deformed ``points``) with per-vertex/per-tet fields."""

@@ -30,7 +30,7 @@ Flags are sticky until :meth:`QuasiStaticSolver.reset`; flagged problems are nev
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -487,7 +487,10 @@ def rigid_body_modes(points: np.ndarray, batch_size: int, num_dofs: int) -> np.n
 
 
 def _per_problem(value, batch_size: int, name: str) -> np.ndarray:
-    v = np.asarray(value, dtype=np.float64)
+    try:
+        v = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{name} must be a number or {batch_size} numbers, got {value!r}") from e
     if v.ndim == 0:
         v = np.full(batch_size, float(v))
     if v.shape != (batch_size,):
@@ -715,13 +718,18 @@ class QuasiStaticSolver:
         self.options = options or SolverOptions()
         self.linear_solver = self.options.linear_solver
 
+        if isinstance(bodies, (RigidBody, str)) or not isinstance(bodies, Iterable):
+            raise TypeError(
+                f"bodies must be a list of RigidBody instances, got {type(bodies).__name__}"
+                + (" (wrap the one body in a list: [body])" if isinstance(bodies, RigidBody) else "")
+            )
         self.bodies = list(bodies)
+        for body in self.bodies:
+            if not isinstance(body, RigidBody):
+                raise TypeError(f"bodies must be RigidBody instances, got {type(body).__name__} {body!r}")
         names = [b.name for b in self.bodies]
         if len(set(names)) != len(names):
             raise BodyError(f"body names must be unique, got {names}")
-        for body in self.bodies:
-            if not isinstance(body, RigidBody):
-                raise TypeError(f"bodies must be RigidBody instances, got {type(body).__name__}")
         self.dof_names: list[str] = []
         self.dof_mode: list[str] = []
         body_dof = []
@@ -978,9 +986,17 @@ class QuasiStaticSolver:
         else:
             rows = _problem_rows(rows, "rows", self.batch_size)
             whole = False
-        mats = [material] * len(rows) if isinstance(material, Material) else list(material)
+        what = f"{self.batch_size}" if whole else f"{len(rows)} (one per row)"
+        if isinstance(material, Material):
+            mats = [material] * len(rows)
+        elif isinstance(material, Iterable) and not isinstance(material, str):
+            mats = list(material)
+        else:
+            raise TypeError(
+                f"material must be a Material or a list of {what} Materials, got {type(material).__name__} "
+                f"{material!r} (e.g. fem.Material(youngs_modulus, poisson_ratio, density))"
+            )
         if len(mats) != len(rows) or not all(isinstance(m, Material) for m in mats):
-            what = f"{self.batch_size}" if whole else f"{len(rows)} (one per row)"
             raise ValueError(f"material must be a Material or a list of {what} Materials")
         if whole:
             self.materials = mats

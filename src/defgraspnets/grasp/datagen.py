@@ -160,7 +160,8 @@ def resolve_object_mesh(
 
     Raises:
         FileNotFoundError: ``spec`` looks like a path but no file is there.
-        ValueError: neither a registry name nor a file.
+        ValueError: neither a registry name nor a file; a file of no mesh format, unreadable, or whose
+            vertices are not finite (:class:`~defgraspnets.objects.ObjectMeshError`, naming the file).
     """
     if spec == "box":
         return structured_box(box_size, box_divisions)
@@ -172,8 +173,26 @@ def resolve_object_mesh(
             return fem.TetMesh.load(path, name=path.stem)
         import trimesh
 
-        from defgraspnets.objects import tetrahedralize
+        from defgraspnets.objects import ObjectMeshError, tetrahedralize
 
+        if path.suffix.lower().lstrip(".") not in trimesh.available_formats():
+            raise ObjectMeshError(
+                f"{path}: unknown mesh format {path.suffix!r}; expected a tet mesh "
+                f"({', '.join(_TET_SUFFIXES)}) or a closed surface (.stl, .obj, .ply, .off, .glb, ...: "
+                "trimesh.available_formats())"
+            )
+        try:
+            # unprocessed first: trimesh's processing drops NaN vertices with their faces, which would
+            # report the broken coordinates as a hole
+            raw = trimesh.load(path, force="mesh", process=False)
+        except Exception as e:
+            raise ObjectMeshError(f"{path}: not a readable surface mesh ({type(e).__name__}: {e})") from e
+        bad = np.flatnonzero(~np.isfinite(np.asarray(raw.vertices)).all(axis=1))
+        if bad.size:
+            shown = ", ".join(str(i) for i in bad[:8]) + (", ..." if bad.size > 8 else "")
+            raise ObjectMeshError(
+                f"{path}: non-finite (NaN or inf) coordinates at vertices [{shown}] ({bad.size} in all)"
+            )
         surface = trimesh.load(path, force="mesh")
         return tetrahedralize(surface, target_nodes, mesher, cache_dir=cache_dir, name=path.stem)
     return load_object_mesh(spec, target_nodes, mesher, cache_dir)[0]
@@ -265,7 +284,35 @@ def object_moduli(
     return [moduli[i] for i in chosen]
 
 
+def _check_out_dir(out_dir: Path) -> None:
+    """Raise unless ``out_dir`` is, or can be made, a writable directory (naming what is in the way)."""
+    existing = out_dir
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        what = "is" if existing == out_dir else f"lies under {existing}, which is"
+        raise NotADirectoryError(f"out_dir {out_dir} {what} a file, not a directory")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise PermissionError(f"out_dir {out_dir}: {existing} is not writable")
+
+
+def _is_number(value) -> bool:
+    """A real number (int, float, a numpy scalar or 0-d array of either); not a string, bool or container."""
+    try:
+        return np.ndim(value) == 0 and np.asarray(value).dtype.kind in "iuf"
+    except (TypeError, ValueError):
+        return False
+
+
 def _check_inputs(moduli, num_grasps, steps, max_force, friction, poisson_ratio, density, shard_count):
+    listed = isinstance(moduli, (Sequence, np.ndarray)) and not isinstance(moduli, (str, bytes))
+    if not all(_is_number(e) for e in (np.asarray(moduli).reshape(-1) if listed else [moduli])):
+        raise ValueError(f"youngs_modulus must be a number or a list of numbers [Pa], got {moduli!r}")
+    named = dict(num_grasps=num_grasps, steps=steps, max_force=max_force, friction=friction,
+                 poisson_ratio=poisson_ratio, density=density, shard_count=shard_count)  # fmt: skip
+    for key, value in named.items():
+        if not _is_number(value):
+            raise ValueError(f"{key} must be a number, got {value!r} ({type(value).__name__})")
     moduli = np.atleast_1d(np.asarray(moduli, dtype=np.float64))
     if moduli.ndim != 1 or moduli.size == 0:
         raise ValueError(f"youngs_modulus must be a non-empty list of moduli [Pa], got {moduli!r}")
@@ -862,6 +909,7 @@ def generate_object_shards(
     object_moduli("", moduli, moduli_per_object)  # a bad count fails before the object is meshed
     layout = experiment_layout(names, settings) if names else None
     out_dir = Path(out_dir)
+    _check_out_dir(out_dir)  # before the object is meshed and its grasps simulated
     if isinstance(obj, fem.TetMesh):
         mesh = obj
     elif isinstance(obj, str):

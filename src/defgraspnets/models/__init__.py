@@ -20,6 +20,8 @@ _EXPORTS = {
     "FingerGeometry": "predictor",
     "GraspFieldPrediction": "predictor",
     "finger_contact_poses": "predictor",
+    "CheckpointError": "checkpoints",
+    "read_checkpoint": "checkpoints",
 }
 
 __all__ = sorted(_EXPORTS)

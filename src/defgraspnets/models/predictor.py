@@ -229,11 +229,11 @@ class DefGraspNetsPredictor:
         cls, path: str | Path, device: str | torch.device = "cpu", **kwargs
     ) -> DefGraspNetsPredictor:
         """Load a :class:`~defgraspnets.models.defgraspnets_module.DefGraspNetsModule` checkpoint."""
+        from defgraspnets.models.checkpoints import read_checkpoint
         from defgraspnets.models.defgraspnets_module import DefGraspNetsModule
 
         path = Path(path)
-        if not path.exists():
-            raise FileNotFoundError(f"checkpoint not found: {path}")
+        read_checkpoint(path, "DefGraspNetsModule")  # names a missing, unreadable or wrong-model file
         module = DefGraspNetsModule.load_from_checkpoint(path, map_location="cpu")
         kwargs.setdefault("displacement_target", module.displacement_target)
         return cls(module.net, module.contact_radius_m, device, **kwargs)

@@ -187,12 +187,13 @@ class WrenchRegressionModule(L.LightningModule):
         (:class:`~defgraspnets.models.wrench_cnn.WrenchCNN` with its stored constructor arguments)."""
         from pathlib import Path
 
+        from .checkpoints import read_checkpoint
         from .wrench_cnn import WrenchCNN
 
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"wrench checkpoint not found: {path}")
-        checkpoint = torch.load(path, map_location=map_location, weights_only=False)
+        checkpoint = read_checkpoint(path, "WrenchRegressionModule", map_location=map_location)
         if "net_config" not in checkpoint:
             raise ValueError(
                 f"{path} stores no net_config (saved before it existed): load it with "

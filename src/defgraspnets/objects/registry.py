@@ -111,6 +111,10 @@ def get_object(name: str, edge_length: float = DEFAULT_EDGE_LENGTH) -> ObjectMod
         MissingAssetPackageError: a real object's source package is not installed;
         ObjectMeshError: its file cannot be repaired into a closed manifold.
     """
+    if not isinstance(name, str):
+        raise TypeError(
+            f"object name must be a string (see defgraspnets.objects.list_objects()), got {name!r}"
+        )
     if name not in PRIMITIVES and name not in REAL_OBJECTS:
         close = [n for n in list_objects() if name.split("_")[0] in n][:5]
         hint = f"; similar: {', '.join(close)}" if close else ""

@@ -246,6 +246,9 @@ class GraspPlanner:
     ):
         if not isinstance(mesh, TetMesh):
             raise TypeError(f"mesh must be a TetMesh, got {type(mesh).__name__}")
+        for key, value in (("youngs_modulus", youngs_modulus), ("force", force)):
+            if value is None or isinstance(value, (str, bytes)):
+                raise ValueError(f"{key} must be a number, got {value!r} ({type(value).__name__})")
         if not (math.isfinite(youngs_modulus) and youngs_modulus > 0):
             raise ValueError(f"youngs_modulus must be a positive modulus [Pa], got {youngs_modulus!r}")
         if not (math.isfinite(force) and force > 0):

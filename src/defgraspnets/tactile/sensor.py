@@ -272,7 +272,11 @@ class MembraneSimulator:
         if not isinstance(gas, PVState):
             raise TypeError(f"gas must be a PVState, got {type(gas).__name__}")
         shape = fem_shape(indenter)  # raises IndenterError for unsupported types
-        if not (np.isfinite(friction) and friction >= 0):
+        if (
+            friction is None
+            or isinstance(friction, (str, bytes))
+            or not (np.isfinite(friction) and friction >= 0)
+        ):
             raise ValueError(f"friction must be finite and >= 0, got {friction!r}")
         self.sensor = sensor
         self.indenter = indenter
