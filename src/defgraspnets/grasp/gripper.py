@@ -366,8 +366,9 @@ def finger_closing_distances(
         # (and avoid intra-op thread stalls when the cores are shared with other processes).
         with _torch_threads(1):
             closing, touches = finger_closing_distances(
-                torch.as_tensor(np.asarray(points, dtype=np.float64)),
-                torch.as_tensor(np.asarray(poses, dtype=np.float64)),
+                # (copies: a read-only array, e.g. a mesh's points, would make torch warn on every call)
+                torch.from_numpy(np.array(points, dtype=np.float64)),
+                torch.from_numpy(np.array(poses, dtype=np.float64)),
                 gripper,
                 faces,
                 temperature,
