@@ -102,11 +102,11 @@ def train(cfg: DictConfig) -> dict[str, float]:
     import lightning as L
 
     L.seed_everything(cfg.seed, workers=True)
-    if cfg.get("ckpt_path") and not Path(cfg.ckpt_path).exists():
-        raise FileNotFoundError(f"ckpt_path not found: {cfg.ckpt_path}")
-    if cfg.get("ckpt_path"):  # a truncated file or the other model's checkpoint, named before any work
+    if cfg.get("ckpt_path"):  # missing, truncated or the other model's checkpoint: named before any work
         from defgraspnets.models.checkpoints import check_checkpoint_for
 
+        if not Path(cfg.ckpt_path).exists():
+            raise FileNotFoundError(f"ckpt_path not found: {cfg.ckpt_path}")
         check_checkpoint_for(cfg.ckpt_path, cfg.model._target_)
     log.info("instantiating datamodule <%s>", cfg.data._target_)
     datamodule = hydra.utils.instantiate(cfg.data)

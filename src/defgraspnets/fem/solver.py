@@ -2487,7 +2487,7 @@ class QuasiStaticSolver:
         log.debug("load increment: fractions %s -> %s", path.lam_done[mask][:4], path.lam_try[mask][:4])
         step = path.change * (path.lam_try - path.lam_done)[:, None]
         self._start_increment(step, path.lam_try, path.start, path.end, mask)
-        run.snap[mask] = path.snapping[mask] | self._snapping[mask]
+        run.snap[mask] = self._snapping[mask]  # (set with path.snapping at the attempt, and kept)
         self._newton_begin(run, mask)
 
     def _finish_increments(self, path: _LoadPath, run: _NewtonRun, done: np.ndarray) -> np.ndarray:
@@ -2495,7 +2495,6 @@ class QuasiStaticSolver:
         next increment, or restore and halve it, or flag the problem. Returns the problems that left their
         load path (reached its end or were flagged)."""
         o = self.options
-        newton_budget = self._newton_budget()  # (of the load step the problems are on)
         ok, fail_status = run.ok & done, run.status.copy()
         path.newton_total[done] += run.iters[done] + path.held_newton[done]
         path.linear_total[done] += run.lin_iters[done] + path.held_linear[done]
