@@ -250,6 +250,12 @@ class MembraneSimulator:
         options: FEM :class:`~defgraspnets.fem.SolverOptions` (default: :func:`membrane_solver_options`).
         inflation_steps: load steps of the inflation.
         device: Warp device of the solver and the camera ("cpu", "cuda", ...); None = Warp's default.
+        contact_subdivisions: n, sub-vertex contact (``SolverOptions.contact_subdivisions``, replaces the
+            options' value when given): the indenter touches the grid points of the n-subdivision of every
+            membrane surface triangle instead of its vertices alone, so an indenter narrower than the
+            vertex spacing (the 1 cm fingertip on the cap-8 membrane, vertices ~9-10 mm apart) no longer
+            slips between the vertices. None: the options' value (1, vertex contact, by default). Measured
+            in ``benchmarks/fem_triangle_contact_cpu.md`` (module docstring).
 
     The membrane is inflated on construction (:attr:`reference`).
     """
@@ -266,6 +272,7 @@ class MembraneSimulator:
         options: fem.SolverOptions | None = None,
         inflation_steps: int = 2,
         device: str | None = None,
+        contact_subdivisions: int | None = None,
     ):
         if not isinstance(sensor, MembraneSensor):
             raise TypeError(f"sensor must be a MembraneSensor, got {type(sensor).__name__}")
@@ -289,6 +296,10 @@ class MembraneSimulator:
             "indenter", shape, control=fem.Control.displacement((0.0, 0.0, 1.0)), friction=float(friction)
         )
 
+        options = options or membrane_solver_options(device)
+        if contact_subdivisions is not None:
+            options = replace(options, contact_subdivisions=contact_subdivisions)
+
         def build_solver(batch_size: int) -> fem.QuasiStaticSolver:
             return fem.QuasiStaticSolver(
                 sensor.mesh,
@@ -297,7 +308,7 @@ class MembraneSimulator:
                 batch_size=batch_size,
                 device=device,
                 fixed=sensor.clamped_vertices,
-                options=options or membrane_solver_options(device),
+                options=options,
                 pressure_surface=fem.PressureSurface(
                     sensor.inner_faces, sensor.rim_center, external_volume=dims.housing_volume
                 ),
@@ -381,7 +392,7 @@ class MembraneSimulator:
         """
         indenter = self.indenter if indenter is None else indenter
         body = indenter.with_pose(indentation.pose)
-        x = body.pose.inverse_apply(self.inflated.positions[0][self.sensor.outer_vertices])
+        x = body.pose.inverse_apply(self._outer_contact_points())
         d = np.asarray(indentation.direction)
         d_local = body.pose.rotation.inv().apply(d)
 
@@ -416,6 +427,21 @@ class MembraneSimulator:
             k = first_touch(inner)
             lo, hi = (inner[k - 1] if k else lo), (inner[k] if k < len(inner) else hi)
         return 0.5 * (lo + hi)
+
+    def _outer_contact_points(self) -> np.ndarray:
+        """(P_o, 3) the inflated membrane's contact points on its outer surface: the outer vertices, and with
+        sub-vertex contact (``contact_subdivisions`` > 1) the solver's points on the outer triangles too, so
+        that the onset of an indentation is where the indenter first touches a contact point (a small
+        indenter landing between the vertices touches the triangle's points first)."""
+        positions = self.inflated.positions[0]
+        solver = self.solver
+        if solver.options.contact_subdivisions == 1:
+            return positions[self.sensor.outer_vertices]
+        outer = np.zeros(len(positions), dtype=bool)
+        outer[self.sensor.outer_vertices] = True
+        vertices, weights = solver.contact_point_vertices, solver.contact_point_weights
+        on_outer = outer[vertices].all(axis=1)
+        return np.einsum("pij,pi->pj", positions[vertices[on_outer]], weights[on_outer])
 
     def _body_frame(self, indentation: Indentation) -> np.ndarray:
         """4x4 pose of the FEM body whose local z is the indentation direction (travel axis).
