@@ -42,7 +42,7 @@ def landing_points(sensor) -> dict[str, np.ndarray]:
 
 def poke_series(sim, direction: np.ndarray, depths: np.ndarray) -> dict:
     """One radial poke to the deepest depth, read at each depth: forces, Newton iterations, seconds."""
-    from defgraspnets.tactile.indenters import Pose
+    from defgraspnets.tactile.indenters import Pose, WorkspaceError
     from defgraspnets.tactile.sensor import Indentation
 
     center = sim.sensor.dimensions.center
@@ -59,6 +59,9 @@ def poke_series(sim, direction: np.ndarray, depths: np.ndarray) -> dict:
     t0 = time.perf_counter()
     try:
         series = sim.indent_series([item], depths / depths[-1], render=False)
+    except WorkspaceError as error:  # vertex contact: the sphere passes between the vertices, no onset
+        return {"force": [None] * len(depths), "converged": [False] * len(depths), "newton": 0,
+                "seconds": 0.0, "error": str(error)}  # fmt: skip
     finally:
         seconds = time.perf_counter() - t0
         del solver._newton_pass

@@ -1,6 +1,7 @@
-"""Frictional contact between object surface vertices and rigid bodies (Warp kernels).
+"""Frictional contact between object surface points and rigid bodies (Warp kernels).
 
-Normal contact is a penalty on the signed distance g of each object surface vertex i to body k:
+Normal contact is a penalty on the signed distance g of each object surface vertex i (more generally,
+each contact point: see the end of this docstring) to body k:
 
     E_n = k_i pen^3 / (6 delta_i)                          for pen < delta_i,
     E_n = k_i (pen^2 / 2 - delta_i pen / 2 + delta_i^2 / 6)  beyond,
@@ -49,6 +50,41 @@ of the body surface) and the PSD friction Hessian, so Newton directions always d
 
 A body's placement is (R, t + travel a) with a its control axis in the object frame; the derivative
 of the penetration with respect to travel is n . a.
+
+Contact points (sub-vertex contact). The penalty and friction above act on *contact points*, each a
+barycentric point x = sum_i w_i x_{v_i} of a surface triangle (v_0, v_1, v_2) with its own area A_p and
+size h_p (:class:`ContactPoints`). By default (``SolverOptions.contact_subdivisions`` n = 1) they are the
+surface vertices, (v, v, v; 1, 0, 0) with A_p = A_v: the vertex contact, bit for bit (a vertex point reads
+its vertex's position as it is and skips its zero weights). With n > 1 they are the vertices of the
+uniform n-subdivision of every surface triangle, each once (:func:`surface_contact_points`): the surface
+vertices (area A_v / n^2), the n - 1 inner points of every edge (shared by its two faces) and the
+(n - 1)(n - 2) / 2 interior points of every face, each with its lumped share of the subdivided surface
+(a third of every sub-triangle of area A_f / n^2 it is a corner of), so the areas sum to the surface
+area. The samples *replace* the vertex points rather than add to them: a vertex is itself a corner of the
+grid of each of its triangles, and per-face samples with their corners (the fast membrane's
+``contact_samples_per_face``) would hold every vertex and edge point once per adjacent face, each a
+separate friction slot at the same place; the deduplicated grid is the vertex contact of the subdivided
+surface, and n = 1 the vertex contact itself. Every point keeps the penalty length h of the whole mesh,
+so the pressure stiffness kappa E / h and the penetration tolerance are those of the vertex contact.
+
+A point's friction slot (lagged N and n, stick stretch s_0) is per (problem, point, body), its stick
+anchor y the body's motion applied to the point's reference position sum_i w_i X_i. Its gradient goes to
+vertex i with weight w_i; its Hessian is exact, the blocks w_i w_j H between the vertices of its triangle:
+these pairs are tet edges, so they lie in the FEM's block pattern, and every linear solver (dense, banded,
+dense_banded, direct, cg, amg) assembles from those same BSR values (no lumping needed; the travel couplings
+of a force-controlled body go to the (dof, surface vertex) blocks with w_i). Results stay per surface
+vertex: point forces lumped onto the vertices with the weights (sums over the surface unchanged).
+
+Limits and cost (``benchmarks/fem_triangle_contact_cpu.md``): points are points; between them a body of
+radius r dips into a triangle by up to about the sagitta r - sqrt(r^2 - R_c^2) of the largest empty circle
+of the grid (R_c a sub-triangle's circumradius). And the FEM field is still linear across each element: a
+body narrower than the elements that presses the middle of a face must move its three vertices, so it
+meets a stiffer surface than one landing on a vertex. On the cap-8 membrane (vertices 9-10 mm apart) the
+1 cm fingertip no longer passes between the vertices (vertex contact: no onset at an edge midpoint, contact
+lost past 5 mm at a centroid), but landing on an edge or a centroid it pushes 40-50 % harder at 5 mm
+depth than on a vertex (9-10 % at 25 mm), and the coarse membrane stays 30-40 % stiffer than the cap-16
+one; see the benchmark. Cost: about n^2 times the contact slots of the vertex contact (the membrane's
+kernels are a small part of a Newton iteration next to the factorization).
 """
 
 from __future__ import annotations
