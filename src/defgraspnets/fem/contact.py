@@ -81,10 +81,12 @@ of the grid (R_c a sub-triangle's circumradius). And the FEM field is still line
 body narrower than the elements that presses the middle of a face must move its three vertices, so it
 meets a stiffer surface than one landing on a vertex. On the cap-8 membrane (vertices 9-10 mm apart) the
 1 cm fingertip no longer passes between the vertices (vertex contact: no onset at an edge midpoint, contact
-lost past 5 mm at a centroid), but landing on an edge or a centroid it pushes 40-50 % harder at 5 mm
-depth than on a vertex (9-10 % at 25 mm), and the coarse membrane stays 30-40 % stiffer than the cap-16
-one; see the benchmark. Cost: about n^2 times the contact slots of the vertex contact (the membrane's
-kernels are a small part of a Newton iteration next to the factorization).
+lost past 5 mm at a centroid), but landing on an edge or a centroid it pushes 32-50 % harder at 5 mm
+depth than on a vertex (7-14 % at 25 mm), and even on a vertex the coarse membrane is 32-36 % stiffer than
+the cap-16 one (the 20 mm sphere with vertex contact shows the same landing dependence: a mesh effect,
+not a contact one). Cost: about n^2 times the contact slots of the vertex contact (cap 8: 642 -> 2562,
+5762 for n = 2, 3); the membrane's contact kernels are a small part of a Newton iteration next to the
+factorization, but the pokes took 2-4x the Newton iterations of vertex contact's pole pokes.
 """
 
 from __future__ import annotations

@@ -29,6 +29,24 @@ local frame (:func:`fem_shape`):
 - :class:`RingIndenter` -> closed ``fem.TriangleMesh`` of its 64-sided annulus, pressed along its local
   +-z (the annular face first).
 
+Sub-vertex contact (``MembraneSimulator(contact_subdivisions=n)``, ``SolverOptions.contact_subdivisions``;
+off, n = 1, by default). The FEM contact is between the indenter and contact points of the membrane's
+surface: by default its vertices, ~9-10 mm apart on the coarse (cap 8) membrane, so the thesis's 1 cm
+fingertip (r = 5 mm) aimed between them passes through the triangles (no onset at the midpoint of an
+edge at the pole; contact lost past 5 mm at a triangle's centroid). With n > 1 the points are the grid of
+the n-subdivision of every surface triangle (see :mod:`defgraspnets.fem.contact`), and the onset is found
+from the contact points on the outer surface. Measured (``benchmarks/fem_triangle_contact_cpu.md``, 2-core
+CPU, sealed at 1.5 kPa, radial pokes 5-25 mm at the pole, a vertex, an edge midpoint and a centroid): with
+n = 2 or 3 every landing point converges at every depth, at 2-4x the vertex contact's Newton iterations
+and time per path (cap 8, n = 3: 629 Newton iterations, 12 s for the four paths; the cap-16 membrane with
+vertex contact: 1189, 148 s). But the force then still depends on where the fingertip lands: 32-41 % apart
+at 5 mm, 9-13 % at 25 mm (cap 16: 11 % and 4 %), and the coarse membrane stays 28-93 % stiffer than the
+cap-16 one. Neither is contact: the 20 mm sphere with vertex contact shows the same landing dependence on
+cap 8 (an edge midpoint 1.58 x the pole's force at 5 mm), the linear elements of the coarse shell
+(2 layers of 1.5 mm under 9-10 mm faces) being stiffer when pressed between their vertices. Sub-vertex
+contact removes the slipping through, not the coarse mesh's bias; the cap-16 membrane remains the
+reference for the fingertip.
+
 The FEM body's local z must be its travel axis, so its frame is the indenter's pose frame turned by a
 symmetry Q of the shape that maps local z onto the direction (:meth:`MembraneSimulator._body_frame`);
 such a Q exists exactly for the directions listed.
