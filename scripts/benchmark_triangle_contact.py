@@ -83,6 +83,7 @@ def main() -> None:
     parser.add_argument("--depths", nargs="+", type=float, default=[0.005, 0.01, 0.015, 0.02, 0.025])
     parser.add_argument("--radius", type=float, default=0.005, help="indenter sphere radius [m]")
     parser.add_argument("--points", nargs="+", default=["pole", "vertex", "edge", "centroid"])
+    parser.add_argument("--layers", type=int, default=2, help="element layers through the membrane")
     parser.add_argument("--out", default=None, help="JSON file of the results")
     args = parser.parse_args()
 
@@ -97,13 +98,19 @@ def main() -> None:
     depths = np.asarray(args.depths)
     landing = landing_points(build_membrane(cap_divisions=8, layers=2))
     center = build_membrane(cap_divisions=8, layers=2).dimensions.center
-    results = {"depths": depths.tolist(), "radius": args.radius, "landing": {}, "runs": {}}
+    results = {
+        "depths": depths.tolist(),
+        "radius": args.radius,
+        "layers": args.layers,
+        "landing": {},
+        "runs": {},
+    }
     for name in args.points:
         d = landing[name] - center
         results["landing"][name] = (d / np.linalg.norm(d)).tolist()
     for config in args.configs:
         cap, n = (int(v) for v in config.split(":"))
-        sensor = build_membrane(cap_divisions=cap, layers=2)
+        sensor = build_membrane(cap_divisions=cap, layers=args.layers)
         t0 = time.perf_counter()
         options = membrane_solver_options("cpu", contact_subdivisions=n)
         sim = make_simulator(

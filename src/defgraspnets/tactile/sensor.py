@@ -42,10 +42,11 @@ and time per path (cap 8, n = 3: 629 Newton iterations, 12 s for the four paths;
 vertex contact: 1189, 148 s). But the force then still depends on where the fingertip lands: 32-41 % apart
 at 5 mm, 9-13 % at 25 mm (cap 16: 11 % and 4 %), and the coarse membrane stays 28-93 % stiffer than the
 cap-16 one. Neither is contact: the 20 mm sphere with vertex contact shows the same landing dependence on
-cap 8 (an edge midpoint 1.58 x the pole's force at 5 mm), the linear elements of the coarse shell
-(2 layers of 1.5 mm under 9-10 mm faces) being stiffer when pressed between their vertices. Sub-vertex
-contact removes the slipping through, not the coarse mesh's bias; the cap-16 membrane remains the
-reference for the fingertip.
+cap 8 (an edge midpoint 1.58 x the pole's force at 5 mm): the FEM field is linear across each 9-10 mm face,
+so a load narrower than a face landing between its vertices is spread over them and meets a stiffer
+surface than at a vertex (4 layers through the thickness instead of 2 change the forces by < 3 %).
+Sub-vertex contact removes the slipping through, not the coarse mesh's bias; the cap-16 membrane remains
+the reference for the fingertip.
 
 The FEM body's local z must be its travel axis, so its frame is the indenter's pose frame turned by a
 symmetry Q of the shape that maps local z onto the direction (:meth:`MembraneSimulator._body_frame`);
