@@ -1,6 +1,7 @@
-"""Frictional contact between object surface vertices and rigid bodies (Warp kernels).
+"""Frictional contact between object surface points and rigid bodies (Warp kernels).
 
-Normal contact is a penalty on the signed distance g of each object surface vertex i to body k:
+Normal contact is a penalty on the signed distance g of each object surface vertex i (more generally,
+each contact point: see the end of this docstring) to body k:
 
     E_n = k_i pen^3 / (6 delta_i)                          for pen < delta_i,
     E_n = k_i (pen^2 / 2 - delta_i pen / 2 + delta_i^2 / 6)  beyond,
@@ -49,10 +50,48 @@ of the body surface) and the PSD friction Hessian, so Newton directions always d
 
 A body's placement is (R, t + travel a) with a its control axis in the object frame; the derivative
 of the penetration with respect to travel is n . a.
+
+Contact points (sub-vertex contact). The penalty and friction above act on *contact points*, each a
+barycentric point x = sum_i w_i x_{v_i} of a surface triangle (v_0, v_1, v_2) with its own area A_p and
+size h_p (:class:`ContactPoints`). By default (``SolverOptions.contact_subdivisions`` n = 1) they are the
+surface vertices, (v, v, v; 1, 0, 0) with A_p = A_v: the vertex contact, bit for bit (a vertex point reads
+its vertex's position as it is and skips its zero weights). With n > 1 they are the vertices of the
+uniform n-subdivision of every surface triangle, each once (:func:`surface_contact_points`): the surface
+vertices (area A_v / n^2), the n - 1 inner points of every edge (shared by its two faces) and the
+(n - 1)(n - 2) / 2 interior points of every face, each with its lumped share of the subdivided surface
+(a third of every sub-triangle of area A_f / n^2 it is a corner of), so the areas sum to the surface
+area. The samples *replace* the vertex points rather than add to them: a vertex is itself a corner of the
+grid of each of its triangles, and per-face samples with their corners (the fast membrane's
+``contact_samples_per_face``) would hold every vertex and edge point once per adjacent face, each a
+separate friction slot at the same place; the deduplicated grid is the vertex contact of the subdivided
+surface, and n = 1 the vertex contact itself. Every point keeps the penalty length h of the whole mesh,
+so the pressure stiffness kappa E / h and the penetration tolerance are those of the vertex contact.
+
+A point's friction slot (lagged N and n, stick stretch s_0) is per (problem, point, body), its stick
+anchor y the body's motion applied to the point's reference position sum_i w_i X_i. Its gradient goes to
+vertex i with weight w_i; its Hessian is exact, the blocks w_i w_j H between the vertices of its triangle:
+these pairs are tet edges, so they lie in the FEM's block pattern, and every linear solver (dense, banded,
+dense_banded, direct, cg, amg) assembles from those same BSR values (no lumping needed; the travel couplings
+of a force-controlled body go to the (dof, surface vertex) blocks with w_i). Results stay per surface
+vertex: point forces lumped onto the vertices with the weights (sums over the surface unchanged).
+
+Limits and cost (``benchmarks/fem_triangle_contact_cpu.md``): points are points; between them a body of
+radius r dips into a triangle by up to about the sagitta r - sqrt(r^2 - R_c^2) of the largest empty circle
+of the grid (R_c a sub-triangle's circumradius). And the FEM field is still linear across each element: a
+body narrower than the elements that presses the middle of a face must move its three vertices, so it
+meets a stiffer surface than one landing on a vertex. On the cap-8 membrane (vertices 9-10 mm apart) the
+1 cm fingertip no longer passes between the vertices (vertex contact: no onset at an edge midpoint, contact
+lost past 5 mm at a centroid), but landing on an edge or a centroid it pushes 32-50 % harder at 5 mm
+depth than on a vertex (7-14 % at 25 mm), and even on a vertex the coarse membrane is 32-36 % stiffer than
+the cap-16 one (the 20 mm sphere with vertex contact shows the same landing dependence: a mesh effect,
+not a contact one). Cost: about n^2 times the contact slots of the vertex contact (cap 8: 642 -> 2562,
+5762 for n = 2, 3); the membrane's contact kernels are a small part of a Newton iteration next to the
+factorization, but the pokes took 2-4x the Newton iterations of vertex contact's pole pokes.
 """
 
 from __future__ import annotations
 
+import numpy as np
 import warp as wp
 
 f64 = wp.float64
@@ -292,6 +331,33 @@ def body_slip(
     return w - wp.dot(w, n) * n
 
 
+@wp.struct
+class ContactPoints:
+    """The object's contact points (see :func:`surface_contact_points`): barycentric points
+    x = sum_i w_i x_{v_i} of surface triangles; a surface vertex is the point (v, v, v; 1, 0, 0)."""
+
+    vertex: wp.array(dtype=wp.vec3i)  # (P,) mesh vertices v_0, v_1, v_2
+    weight: wp.array(dtype=wp.vec3d)  # (P,) barycentric weights w_i (sum 1; a zero weight is skipped)
+    surface: wp.array(dtype=wp.vec3i)  # (P,) indices of v_i among the surface vertices (dof columns)
+    area: wp.array(dtype=wp.float64)  # (P,) lumped surface area A of the point [m^2]
+    size: wp.array(dtype=wp.float64)  # (P,) penalty length h [m]
+    blocks: wp.array2d(dtype=wp.int32)  # (P, 9) BSR block (v_i, v_j) of one problem at 3 i + j
+
+
+@wp.func
+def point_position(
+    points: ContactPoints, positions: wp.array(dtype=wp.vec3d), offset: int, p: int
+) -> wp.vec3d:
+    """x = sum_i w_i x_{v_i} of contact point p (positions of one state start at ``offset``); a vertex
+    point reads its vertex's position as it is (no arithmetic, so vertex contact is bit for bit unchanged)."""
+    ids = points.vertex[p]
+    w = points.weight[p]
+    x = positions[offset + ids[0]]
+    if w[1] != f64(0.0) or w[2] != f64(0.0):
+        x = w[0] * x + w[1] * positions[offset + ids[1]] + w[2] * positions[offset + ids[2]]
+    return x
+
+
 @wp.func
 def contact_stiffness(kappa: f64, youngs: f64, area: f64, size: f64) -> f64:
     """k_i = kappa E A_i / h_i [N/m]."""
@@ -352,9 +418,7 @@ def contact_energy_kernel(
     positions: wp.array(dtype=wp.vec3d),
     ref_positions: wp.array(dtype=wp.vec3d),
     travel: wp.array(dtype=wp.float64),
-    surface: wp.array(dtype=wp.int32),
-    vertex_area: wp.array(dtype=wp.float64),
-    vertex_size: wp.array(dtype=wp.float64),
+    points: ContactPoints,
     youngs: wp.array(dtype=wp.float64),
     kappa: f64,
     smoothing: f64,
@@ -368,25 +432,24 @@ def contact_energy_kernel(
     active: wp.array(dtype=wp.int32),
     energy: wp.array(dtype=wp.float64),
 ):
-    """energy[p] += penalty + friction potential of every (trial state p = t B + b of problem b, surface
-    vertex, body); B = len(active), T = 1: the problems' states."""
+    """energy[p] += penalty + friction potential of every (trial state p = t B + b of problem b, contact
+    point, body); B = len(active), T = 1: the problems' states."""
     p, si, k = wp.tid()
     b = p % active.shape[0]
     if active[b] == 0:
         return
-    v = surface[si]
-    x = positions[p * num_vertices + v]
+    x = point_position(points, positions, p * num_vertices, si)
     t = body_travel(bodies, travel, p, k, num_dofs)
-    kn = contact_stiffness(kappa, youngs[b], vertex_area[v], vertex_size[v])
+    size = points.size[si]
+    kn = contact_stiffness(kappa, youngs[b], points.area[si], size)
     g, n = body_gap(bodies, b, k, x, t)
-    e = penalty_energy(-g, kn, smoothing * vertex_size[v])
-    c = (b * surface.shape[0] + si) * bodies.num_bodies + k
+    e = penalty_energy(-g, kn, smoothing * size)
+    c = (b * points.area.shape[0] + si) * bodies.num_bodies + k
     mu_n = bodies.friction[b * bodies.num_bodies + k] * lag_normal_force[c]
     if mu_n > f64(0.0):
-        s = body_slip(
-            bodies, b, k, x, ref_positions[b * num_vertices + v], t, lag_normal[c], stick_stretch[c]
-        )
-        e += friction_energy(s, mu_n, stick_stiffness(mu_n, kn, stick_slip, vertex_size[v]))
+        x_ref = point_position(points, ref_positions, b * num_vertices, si)
+        s = body_slip(bodies, b, k, x, x_ref, t, lag_normal[c], stick_stretch[c])
+        e += friction_energy(s, mu_n, stick_stiffness(mu_n, kn, stick_slip, size))
     wp.atomic_add(energy, p, e)
 
 
@@ -407,9 +470,7 @@ def contact_gradient_hessian_kernel(
     positions: wp.array(dtype=wp.vec3d),
     ref_positions: wp.array(dtype=wp.vec3d),
     travel: wp.array(dtype=wp.float64),
-    surface: wp.array(dtype=wp.int32),
-    vertex_area: wp.array(dtype=wp.float64),
-    vertex_size: wp.array(dtype=wp.float64),
+    points: ContactPoints,
     youngs: wp.array(dtype=wp.float64),
     kappa: f64,
     smoothing: f64,
@@ -436,11 +497,11 @@ def contact_gradient_hessian_kernel(
     b, si, k = wp.tid()
     if active[b] == 0:
         return
-    v = surface[si]
-    x = positions[b * num_vertices + v]
+    x = point_position(points, positions, b * num_vertices, si)
     d = bodies.dof[k]
     t = body_travel(bodies, travel, b, k, num_dofs)
-    kn = contact_stiffness(kappa, youngs[b], vertex_area[v], vertex_size[v])
+    size = points.size[si]
+    kn = contact_stiffness(kappa, youngs[b], points.area[si], size)
     bk = b * bodies.num_bodies + k
     a = bodies.axis[bk]
     g, n = body_gap(bodies, b, k, x, t)
@@ -450,10 +511,10 @@ def contact_gradient_hessian_kernel(
     H_xx = wp.mat33d()
     H_xt = wp.vec3d()
     H_tt = f64(0.0)
-    c = (b * surface.shape[0] + si) * bodies.num_bodies + k
+    c = (b * points.area.shape[0] + si) * bodies.num_bodies + k
     na = wp.dot(n, a)
     if g < f64(0.0):
-        delta = smoothing * vertex_size[v]
+        delta = smoothing * size
         fn = penalty_force(-g, kn, delta)
         kg = penalty_stiffness(-g, kn, delta)
         grad_x = -fn * n
@@ -471,12 +532,13 @@ def contact_gradient_hessian_kernel(
     mu_n = bodies.friction[bk] * lag_normal_force[c]
     if mu_n > f64(0.0):
         nl = lag_normal[c]
-        s = body_slip(bodies, b, k, x, ref_positions[b * num_vertices + v], t, nl, stick_stretch[c])
+        x_ref = point_position(points, ref_positions, b * num_vertices, si)
+        s = body_slip(bodies, b, k, x, x_ref, t, nl, stick_stretch[c])
         sn = wp.length(s)
         tangent = wp.identity(n=3, dtype=wp.float64) - wp.outer(nl, nl)
         Hf = wp.mat33d()
         fs = wp.vec3d()  # dD/ds
-        kt = stick_stiffness(mu_n, kn, stick_slip, vertex_size[v])
+        kt = stick_stiffness(mu_n, kn, stick_slip, size)
         if sn <= mu_n / kt:
             fs = kt * s
             Hf = kt * tangent
@@ -493,23 +555,37 @@ def contact_gradient_hessian_kernel(
 
     if g >= f64(0.0) and mu_n <= f64(0.0):
         return
-    wp.atomic_add(gradient, b * blocks.rows_per_problem + v, grad_x)
+    # scatter to the point's vertices with its weights: x = sum_i w_i x_i, so the gradient of vertex i is
+    # w_i grad_x and its Hessian blocks (i, j) w_i w_j H_xx (a vertex point: w = (1, 0, 0), the blocks of
+    # its zero weights skipped, so vertex contact adds exactly what it always did)
+    ids = points.vertex[si]
+    w = points.weight[si]
+    surf = points.surface[si]
     ob = b * blocks.blocks_per_problem
-    wp.atomic_add(hessian, ob + blocks.vertex_diag[v], H_xx)
+    zero = f64(0.0)
+    for i in range(3):
+        wi = w[i]
+        if wi != zero:
+            wp.atomic_add(gradient, b * blocks.rows_per_problem + ids[i], wi * grad_x)
+            for j in range(3):
+                wj = w[j]
+                if wj != zero:
+                    wp.atomic_add(hessian, ob + points.blocks[si, 3 * i + j], (wi * wj) * H_xx)
+            if d >= 0:
+                Hi = wi * H_xt
+                wp.atomic_add(
+                    hessian,
+                    ob + blocks.dof_vertex[d, surf[i]],
+                    wp.mat33d(Hi[0], Hi[1], Hi[2], zero, zero, zero, zero, zero, zero),
+                )
+                wp.atomic_add(
+                    hessian,
+                    ob + blocks.vertex_dof[d, surf[i]],
+                    wp.mat33d(Hi[0], zero, zero, Hi[1], zero, zero, Hi[2], zero, zero),
+                )
     if d >= 0:
         row = b * blocks.rows_per_problem + num_vertices + d
         wp.atomic_add(gradient, row, wp.vec3d(grad_t, f64(0.0), f64(0.0)))
-        zero = f64(0.0)
-        wp.atomic_add(
-            hessian,
-            ob + blocks.dof_vertex[d, si],
-            wp.mat33d(H_xt[0], H_xt[1], H_xt[2], zero, zero, zero, zero, zero, zero),
-        )
-        wp.atomic_add(
-            hessian,
-            ob + blocks.vertex_dof[d, si],
-            wp.mat33d(H_xt[0], zero, zero, H_xt[1], zero, zero, H_xt[2], zero, zero),
-        )
         wp.atomic_add(
             hessian, ob + blocks.dof_diag[d], wp.mat33d(H_tt, zero, zero, zero, zero, zero, zero, zero, zero)
         )
@@ -520,9 +596,7 @@ def contact_state_kernel(
     positions: wp.array(dtype=wp.vec3d),
     ref_positions: wp.array(dtype=wp.vec3d),
     travel: wp.array(dtype=wp.float64),
-    surface: wp.array(dtype=wp.int32),
-    vertex_area: wp.array(dtype=wp.float64),
-    vertex_size: wp.array(dtype=wp.float64),
+    points: ContactPoints,
     youngs: wp.array(dtype=wp.float64),
     kappa: f64,
     smoothing: f64,
@@ -539,27 +613,26 @@ def contact_state_kernel(
     friction_force: wp.array(dtype=wp.vec3d),
     sticking: wp.array(dtype=wp.int32),
 ):
-    """Per contact slot (b, s, k): gap g, penalty normal force k pen >= 0 along the normal, and the friction
-    force on the object vertex (-dD/ds, with the lagged normal force), sticking = |s| <= eps."""
+    """Per contact slot (b, point s, k): gap g, penalty normal force k pen >= 0 along the normal, and the
+    friction force on the object point (-dD/ds, with the lagged normal force), sticking = |s| <= eps."""
     b, si, k = wp.tid()
-    v = surface[si]
-    x = positions[b * num_vertices + v]
+    x = point_position(points, positions, b * num_vertices, si)
     t = body_travel(bodies, travel, b, k, num_dofs)
-    kn = contact_stiffness(kappa, youngs[b], vertex_area[v], vertex_size[v])
+    size = points.size[si]
+    kn = contact_stiffness(kappa, youngs[b], points.area[si], size)
     g, n = body_gap(bodies, b, k, x, t)
-    c = (b * surface.shape[0] + si) * bodies.num_bodies + k
+    c = (b * points.area.shape[0] + si) * bodies.num_bodies + k
     gap[c] = g
     normal[c] = n
-    normal_force[c] = penalty_force(-g, kn, smoothing * vertex_size[v])
+    normal_force[c] = penalty_force(-g, kn, smoothing * size)
     mu_n = bodies.friction[b * bodies.num_bodies + k] * lag_normal_force[c]
     ff = wp.vec3d()
     stick = 0
     if mu_n > f64(0.0):
-        s = body_slip(
-            bodies, b, k, x, ref_positions[b * num_vertices + v], t, lag_normal[c], stick_stretch[c]
-        )
+        x_ref = point_position(points, ref_positions, b * num_vertices, si)
+        s = body_slip(bodies, b, k, x, x_ref, t, lag_normal[c], stick_stretch[c])
         sn = wp.length(s)
-        kt = stick_stiffness(mu_n, kn, stick_slip, vertex_size[v])
+        kt = stick_stiffness(mu_n, kn, stick_slip, size)
         if sn <= mu_n / kt:
             ff = -kt * s
             stick = 1
@@ -574,9 +647,7 @@ def commit_stick_stretch_kernel(
     positions: wp.array(dtype=wp.vec3d),
     ref_positions: wp.array(dtype=wp.vec3d),
     travel: wp.array(dtype=wp.float64),
-    surface: wp.array(dtype=wp.int32),
-    vertex_area: wp.array(dtype=wp.float64),
-    vertex_size: wp.array(dtype=wp.float64),
+    points: ContactPoints,
     youngs: wp.array(dtype=wp.float64),
     kappa: f64,
     smoothing: f64,
@@ -594,18 +665,17 @@ def commit_stick_stretch_kernel(
     b, si, k = wp.tid()
     if mask[b] == 0:
         return
-    c = (b * surface.shape[0] + si) * bodies.num_bodies + k
-    v = surface[si]
+    c = (b * points.area.shape[0] + si) * bodies.num_bodies + k
     t = body_travel(bodies, travel, b, k, num_dofs)
-    kn = contact_stiffness(kappa, youngs[b], vertex_area[v], vertex_size[v])
+    size = points.size[si]
+    kn = contact_stiffness(kappa, youngs[b], points.area[si], size)
     mu_n = bodies.friction[b * bodies.num_bodies + k] * lag_normal_force[c]
     s0 = wp.vec3d()
     if mu_n > f64(0.0):
-        x = positions[b * num_vertices + v]
-        s = body_slip(
-            bodies, b, k, x, ref_positions[b * num_vertices + v], t, lag_normal[c], stick_stretch[c]
-        )
-        eps = mu_n / stick_stiffness(mu_n, kn, stick_slip, vertex_size[v])
+        x = point_position(points, positions, b * num_vertices, si)
+        x_ref = point_position(points, ref_positions, b * num_vertices, si)
+        s = body_slip(bodies, b, k, x, x_ref, t, lag_normal[c], stick_stretch[c])
+        eps = mu_n / stick_stiffness(mu_n, kn, stick_slip, size)
         sn = wp.length(s)
         s0 = s
         if sn > eps:
@@ -690,3 +760,46 @@ def friction_relag_kernel(
     else:
         lag_normal_force[c] = n_force
     lag_normal[c] = normal[c]
+
+
+# ---------------------------------------------------------------- contact points (host)
+def surface_contact_points(mesh, subdivisions: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The contact points of ``mesh``'s surface: the vertices of the uniform ``subdivisions``-subdivision
+    (n) of every surface triangle, each point once.
+
+    Returns (P, 3) mesh vertex indices, (P, 3) barycentric weights and (P,) lumped areas [m^2], points
+    ordered as: the S surface vertices (``mesh.surface_vertices`` order, as ``(v, v, v; 1, 0, 0)``), then
+    the n - 1 inner grid points of every surface edge ``(a, b, b; 1 - t, t, 0)``, then the (n - 1)(n - 2) / 2
+    interior grid points of every face. The area of a point is its lumped share of the subdivided surface
+    (a third of each sub-triangle of area A_f / n^2 it is a corner of): A_v / n^2 for a vertex (A_v the
+    vertex's lumped area), (A_f + A_g) / n^2 for an edge point between faces f and g, 2 A_f / n^2 for an
+    interior point; they sum to the surface area. n = 1: the surface vertices with their lumped areas.
+    """
+    n = int(subdivisions)
+    if n < 1:
+        raise ValueError(f"subdivisions must be >= 1, got {subdivisions!r}")
+    surface = mesh.surface_vertices
+    vertex = [np.repeat(surface[:, None], 3, axis=1)]
+    weight = [np.tile([1.0, 0.0, 0.0], (len(surface), 1))]
+    area = [mesh.vertex_areas[surface] / n**2]
+    if n > 1:
+        faces = mesh.surface_faces
+        face_area = mesh.face_areas
+        edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+        edges, inverse = np.unique(edges, axis=0, return_inverse=True)
+        edge_area = np.zeros(len(edges))
+        np.add.at(edge_area, inverse.ravel(), np.tile(face_area, 3) / n**2)
+        for t in range(1, n):
+            vertex.append(edges[:, [0, 1, 1]])
+            weight.append(np.tile([(n - t) / n, t / n, 0.0], (len(edges), 1)))
+            area.append(edge_area)
+        for i in range(1, n - 1):
+            for j in range(1, n - i):
+                vertex.append(faces)
+                weight.append(np.tile([i / n, j / n, (n - i - j) / n], (len(faces), 1)))
+                area.append(2.0 * face_area / n**2)
+    return (
+        np.concatenate(vertex).astype(np.int32),
+        np.concatenate(weight),
+        np.ascontiguousarray(np.concatenate(area), dtype=np.float64),
+    )

@@ -338,6 +338,15 @@ class SolverOptions:
             costs its full energy evaluation (``LINE_SEARCH_TRIALS_DEFAULT``).
         query_distance: search radius [m] of triangle-mesh bodies' signed distance queries.
         record_tet_stress: keep the per-tet Cauchy stress in results (B x M x 9 floats).
+        contact_subdivisions: n, sub-vertex contact: the contact points are the vertices of the uniform
+            n-subdivision of every surface triangle (``contact.surface_contact_points``), each with its
+            lumped share of the subdivided surface area, instead of the surface vertices alone (1, the
+            default: vertex contact, bit for bit as before). A rigid body narrower than the vertex spacing
+            (the membrane's 10 mm fingertip) no longer slips between vertices into the triangles. The
+            pressure stiffness kappa E / h and the penetration tolerance are unchanged; contact slots,
+            friction lags and stick anchors are per (problem, point, body); results stay per surface vertex
+            (point forces lumped with the barycentric weights). Cost: ~n^2 times the contact points (see
+            ``contact.py``).
     """
 
     contact_stiffness: float = 1000.0
@@ -374,6 +383,7 @@ class SolverOptions:
     line_search_trials: int | None = None
     query_distance: float = 1.0
     record_tet_stress: bool = False
+    contact_subdivisions: int = 1
 
     def __post_init__(self):
         if self.linear_solver not in LINEAR_SOLVERS:
@@ -385,6 +395,9 @@ class SolverOptions:
                 f"SolverOptions.banded_min_problems must be an int >= 1, got {self.banded_min_problems!r}"
             )
         _check_optional_int("line_search_trials", self.line_search_trials, 1)
+        n = self.contact_subdivisions
+        if isinstance(n, bool) or not (isinstance(n, (int, np.integer)) and n >= 1):
+            raise ValueError(f"SolverOptions.contact_subdivisions must be an int >= 1, got {n!r}")
         if not (np.isfinite(self.stabilization) and self.stabilization >= 0):
             raise ValueError(f"SolverOptions.stabilization must be >= 0, got {self.stabilization!r}")
         if self.stabilization_release and self.stabilization == 0:
@@ -760,8 +773,6 @@ class QuasiStaticSolver:
         self._rest_inverse = wp.array(mesh.rest_shape_inverse, dtype=wp.mat33d, device=dev)
         self._volume = wp.array(mesh.volumes, dtype=wp.float64, device=dev)
         self._vertex_weight = wp.array(mesh.vertex_tet_volume, dtype=wp.float64, device=dev)
-        self._surface = wp.array(mesh.surface_vertices.astype(np.int32), dtype=wp.int32, device=dev)
-        self._area = wp.array(mesh.vertex_areas, dtype=wp.float64, device=dev)
         # one penalty length for the whole mesh (median surface edge): under a uniform pressure every vertex
         # then penetrates equally, so the penalty does not perturb the pressure distribution
         self.contact_length = mesh.median_surface_edge_length
@@ -825,6 +836,8 @@ class QuasiStaticSolver:
         self._blocks.vertex_dof = wp.array(pad(self.pattern.vertex_dof), dtype=wp.int32, device=dev)
         self._blocks.blocks_per_problem = self.pattern.nnz
         self._blocks.rows_per_problem = R
+        self._build_contact_points()
+        P = self.num_contact_points
         self._tet_blocks = wp.array(self.pattern.tet_blocks, dtype=wp.int32, device=dev)
 
         # ---------------- rigid bodies
@@ -936,7 +949,7 @@ class QuasiStaticSolver:
         self._travel = wp.zeros(max(B * D, 1), dtype=wp.float64, device=dev)
         self._travel_ref = wp.zeros_like(self._travel)
         self._travel_trial = wp.zeros(max(T * B * D, 1), dtype=wp.float64, device=dev)
-        nc = max(B * S * K, 1)
+        nc = max(B * P * K, 1)
         self._lag_force = wp.zeros(nc, dtype=wp.float64, device=dev)
         self._lag_normal = wp.zeros(nc, dtype=wp.vec3d, device=dev)
         # Aitken relaxation of stale re-lags (see _relag_friction): last lag residual and factor per problem
@@ -971,6 +984,31 @@ class QuasiStaticSolver:
         self.set_material(material if material is not None else Material(1e6))
         self._update_bodies()
         self.reset()
+
+    def _build_contact_points(self) -> None:
+        """The contact points (``SolverOptions.contact_subdivisions``, :func:`contact.surface_contact_points`)
+        on the device, with the BSR blocks of their vertex pairs and their vertices' surface indices."""
+        mesh, dev = self.mesh, self.device
+        vertex, weight, area = ck.surface_contact_points(mesh, self.options.contact_subdivisions)
+        #: (P, 3) mesh vertices, (P, 3) barycentric weights and (P,) areas of the contact points; the first
+        #: S are the surface vertices (the only ones with contact_subdivisions = 1)
+        self.contact_point_vertices, self.contact_point_weights = vertex, weight
+        self.num_contact_points = P = len(vertex)
+        pairs = np.arange(9)
+        blocks = self.pattern.block_index(vertex[:, pairs // 3].ravel(), vertex[:, pairs % 3].ravel())
+        if np.any(blocks < 0):  # surface triangles are tet faces: their edges are in the pattern
+            raise ValueError("contact points must lie on triangles of the mesh (their edges tet edges)")
+        points = ck.ContactPoints()
+        points.vertex = wp.array(vertex, dtype=wp.vec3i, device=dev)
+        points.weight = wp.array(weight, dtype=wp.vec3d, device=dev)
+        surface_index = np.searchsorted(mesh.surface_vertices, vertex).astype(np.int32)
+        points.surface = wp.array(surface_index, dtype=wp.vec3i, device=dev)
+        points.area = wp.array(area, dtype=wp.float64, device=dev)
+        points.size = wp.array(np.full(P, self.contact_length), dtype=wp.float64, device=dev)
+        points.blocks = wp.array(blocks.reshape(P, 9), dtype=wp.int32, device=dev)
+        self._points = points
+        #: (P,) surface index of each point's vertices (for lumping point forces onto surface vertices)
+        self._point_surface = surface_index
 
     # ------------------------------------------------------------------ per-problem settings
     def set_material(self, material, rows=None) -> None:
@@ -1079,7 +1117,7 @@ class QuasiStaticSolver:
         mask[rows] = True
         self._update_bodies()
         self._commit_body_reference(mask)
-        self._put_rows(self._stick_stretch, self.num_surface * self.num_bodies, rows)  # zeroed
+        self._put_rows(self._stick_stretch, self.num_contact_points * self.num_bodies, rows)  # zeroed
         self.system.forget_factors(mask)
 
     def set_body_radius(self, name: str, radius, rows=None) -> None:
@@ -1108,10 +1146,10 @@ class QuasiStaticSolver:
         self._bodies.radius.assign(wp.array(self._radius.reshape(-1), dtype=wp.float64, device=self.device))
         mask = np.zeros(self.batch_size, dtype=bool)
         mask[changed] = True
-        stretch = self._host_rows(self._stick_stretch, self.num_surface * self.num_bodies, changed)
-        stretch = stretch.reshape(len(changed), self.num_surface, self.num_bodies, 3)
+        stretch = self._host_rows(self._stick_stretch, self.num_contact_points * self.num_bodies, changed)
+        stretch = stretch.reshape(len(changed), self.num_contact_points, self.num_bodies, 3)
         stretch[:, :, k] = 0.0
-        self._put_rows(self._stick_stretch, self.num_surface * self.num_bodies, changed, stretch)
+        self._put_rows(self._stick_stretch, self.num_contact_points * self.num_bodies, changed, stretch)
         self.system.forget_factors(mask)
 
     def _put_rows(self, array: wp.array, per: int, rows: np.ndarray, values=0.0) -> None:
@@ -1257,11 +1295,11 @@ class QuasiStaticSolver:
         self._check_compatible(other)
         if not rows.size:
             return
-        N, D, K, S, R = (
+        N, D, K, P, R = (
             self.mesh.num_vertices,
             self.num_dofs,
             self.num_bodies,
-            self.num_surface,
+            self.num_contact_points,
             self.rows_per_problem,
         )
         import torch
@@ -1316,7 +1354,7 @@ class QuasiStaticSolver:
             "_c_stick",
         )
         for name in contacts:
-            gather(getattr(self, name), getattr(other, name), S * K)
+            gather(getattr(self, name), getattr(other, name), P * K)
         per_problem = (
             "_relag_relaxation",
             "_exact_hessian",
@@ -1466,7 +1504,7 @@ class QuasiStaticSolver:
         if self.num_bodies:
             wp.launch(
                 ck.contact_energy_kernel,
-                dim=(TB, self.num_surface, self.num_bodies),
+                dim=(TB, self.num_contact_points, self.num_bodies),
                 inputs=[
                     *self._contact_inputs(positions, travel),
                     active,
@@ -1650,7 +1688,7 @@ class QuasiStaticSolver:
         if self.num_bodies:
             wp.launch(
                 ck.contact_gradient_hessian_kernel,
-                dim=(B, self.num_surface, self.num_bodies),
+                dim=(B, self.num_contact_points, self.num_bodies),
                 inputs=[
                     *self._contact_inputs(self._positions, self._travel),
                     self._blocks,
@@ -1694,9 +1732,7 @@ class QuasiStaticSolver:
             positions,
             self._positions_ref,
             travel,
-            self._surface,
-            self._area,
-            self._size,
+            self._points,
             self._youngs,
             float(self.options.contact_stiffness),
             float(self.options.contact_smoothing),
@@ -1714,7 +1750,7 @@ class QuasiStaticSolver:
             return
         wp.launch(
             ck.contact_state_kernel,
-            dim=(self.batch_size, self.num_surface, self.num_bodies),
+            dim=(self.batch_size, self.num_contact_points, self.num_bodies),
             inputs=[
                 *self._contact_inputs(positions, travel),
                 self._c_force,
@@ -1728,7 +1764,7 @@ class QuasiStaticSolver:
 
     def _pinched(self, mask: np.ndarray) -> np.ndarray:
         """(B,) problems in ``mask`` whose current state has a pinched vertex (:func:`pinched_vertices`)."""
-        B, S, K = self.batch_size, self.num_surface, self.num_bodies
+        B, S, K = self.batch_size, self.num_contact_points, self.num_bodies
         if K < 2 or not mask.any():
             return np.zeros(B, dtype=bool)
         self._unpack(self._q, self._positions, self._travel)
@@ -1753,7 +1789,7 @@ class QuasiStaticSolver:
         largest, total, capacity = stats[0], stats[1], stats[2]
         wp.launch(
             ck.friction_lag_error_kernel,
-            dim=(self.batch_size, self.num_surface * self.num_bodies),
+            dim=(self.batch_size, self.num_contact_points * self.num_bodies),
             inputs=[
                 self._c_force,
                 self._c_normal,
@@ -1761,7 +1797,7 @@ class QuasiStaticSolver:
                 self._lag_normal,
                 self._bodies.friction,
                 self.num_bodies,
-                self.num_surface * self.num_bodies,
+                self.num_contact_points * self.num_bodies,
                 self._active_array(mask),
                 largest,
                 total,
@@ -1787,7 +1823,7 @@ class QuasiStaticSolver:
         if not self.num_bodies or not np.any(self._friction[mask] > 0):
             return
         self._contact_state(self._positions, self._travel)
-        slots = self.num_surface * self.num_bodies
+        slots = self.num_contact_points * self.num_bodies
         acc = mask & (accelerate if accelerate is not None else False)
         if acc.any():
             prev = acc & self._relag_has_residual
@@ -2454,14 +2490,14 @@ class QuasiStaticSolver:
             self._copy_rows(self._q_ref, self._q_start, self._active_array(first))
         if first.any() and self.num_bodies:
             rows = np.flatnonzero(first)
-            stick = self._host_rows(self._stick_stretch, self.num_surface * self.num_bodies, rows)
+            stick = self._host_rows(self._stick_stretch, self.num_contact_points * self.num_bodies, rows)
             self._stick_start.update(zip(rows.tolist(), stick))
         path.anchored |= mask
         m = self._active_array(mask)
         if self.num_bodies:
             wp.launch(
                 ck.commit_stick_stretch_kernel,
-                dim=(self.batch_size, self.num_surface, self.num_bodies),
+                dim=(self.batch_size, self.num_contact_points, self.num_bodies),
                 inputs=[*self._contact_inputs(self._positions, self._travel), m],
                 device=self.device,
             )
@@ -2478,7 +2514,7 @@ class QuasiStaticSolver:
         if self.num_bodies:
             rows = np.flatnonzero(mask)
             stick = np.stack([self._stick_start.pop(b) for b in rows.tolist()])
-            self._put_rows(self._stick_stretch, self.num_surface * self.num_bodies, rows, stick)
+            self._put_rows(self._stick_stretch, self.num_contact_points * self.num_bodies, rows, stick)
 
     def _begin_increments(self, path: _LoadPath, run: _NewtonRun, mask: np.ndarray) -> None:
         """Start the next load increment (``path.lam_done`` -> ``path.lam_try``) of the masked problems."""
@@ -3023,7 +3059,7 @@ class QuasiStaticSolver:
         if self.num_bodies:
             wp.launch(
                 ck.commit_stick_stretch_kernel,
-                dim=(self.batch_size, self.num_surface, self.num_bodies),
+                dim=(self.batch_size, self.num_contact_points, self.num_bodies),
                 inputs=[
                     *self._contact_inputs(self._positions, self._travel),
                     m,
@@ -3062,11 +3098,26 @@ class QuasiStaticSolver:
         )
 
     # ------------------------------------------------------------------ outputs
+    def _lump_point_contacts(self, fn: np.ndarray, ff: np.ndarray, stick: np.ndarray):
+        """Per surface vertex, from one body's (n, P) point normal forces, (n, P, 3) friction forces and
+        (n, P) stick flags: the forces lumped with the points' barycentric weights (sum_p w_pi f_p, so sums
+        over the surface are kept) and sticking where the vertex carries normal force and every loaded point
+        it shares in sticks."""
+        n, S = fn.shape[0], self.num_surface
+        w, surf = self.contact_point_weights, self._point_surface  # (P, 3)
+        cn, cf = np.zeros((n, S)), np.zeros((n, S, 3))
+        slipping = np.zeros((n, S))
+        for i in range(3):
+            np.add.at(cn.T, surf[:, i], (w[:, i] * fn).T)
+            np.add.at(cf.transpose(1, 0, 2), surf[:, i], (w[:, i, None] * ff).transpose(1, 0, 2))
+            np.add.at(slipping.T, surf[:, i], (w[:, i] * ((fn > 0) & ~stick)).T)
+        return cn, cf, (cn > 0) & (slipping == 0)
+
     def _results(self, load_fraction, newton, linear, residual, rows=None) -> Equilibrium:
         """The equilibria of all problems, or of the problems ``rows`` (integer indices) only: their
         stresses are computed and their fields copied and post-processed."""
         B, N, M = self.batch_size, self.mesh.num_vertices, self.mesh.num_tets
-        K, S = self.num_bodies, self.num_surface
+        K, P = self.num_bodies, self.num_contact_points
         rows = np.arange(B) if rows is None else np.asarray(rows)
         n = len(rows)
         dev = self.device
@@ -3131,13 +3182,18 @@ class QuasiStaticSolver:
         max_pen = np.zeros(len(rows))
         if K:
             self._contact_state(self._positions, self._travel)
-            fn = self._host_rows(self._c_force, S * K, rows).reshape(n, S, K)
-            nrm = self._host_rows(self._c_normal, S * K, rows).reshape(n, S, K, 3)
-            ff = self._host_rows(self._c_friction, S * K, rows).reshape(n, S, K, 3)
-            st = self._host_rows(self._c_stick, S * K, rows).reshape(n, S, K).astype(bool)
-            gap = self._host_rows(self._c_gap, S * K, rows).reshape(n, S, K)
+            fn = self._host_rows(self._c_force, P * K, rows).reshape(n, P, K)
+            nrm = self._host_rows(self._c_normal, P * K, rows).reshape(n, P, K, 3)
+            ff = self._host_rows(self._c_friction, P * K, rows).reshape(n, P, K, 3)
+            st = self._host_rows(self._c_stick, P * K, rows).reshape(n, P, K).astype(bool)
+            gap = self._host_rows(self._c_gap, P * K, rows).reshape(n, P, K)
             max_pen = np.maximum(0.0, -gap.min(axis=(1, 2)))
-            pos = self._host_rows(self._positions, N, rows).reshape(n, N, 3)[:, self.mesh.surface_vertices]
+            x = self._host_rows(self._positions, N, rows).reshape(n, N, 3)
+            sampled = self.options.contact_subdivisions > 1
+            if sampled:  # the contact points' positions
+                pos = np.einsum("bpij,pi->bpj", x[:, self.contact_point_vertices], self.contact_point_weights)
+            else:
+                pos = x[:, self.mesh.surface_vertices]
             rot, origin, axes = self._world_frames()
             origin, axes = origin[rows], axes[rows]
             for k, body in enumerate(self.bodies):
@@ -3147,6 +3203,11 @@ class QuasiStaticSolver:
                 placed = origin[:, k] + (travel[self.dof_names[d]][:, None] if d >= 0 else 0.0) * axes[:, k]
                 body_force[body.name] = f_body
                 body_torque[body.name] = -np.cross(pos - placed[:, None], on_vertex).sum(axis=1)
+                if sampled:
+                    cn[body.name], cf[body.name], cs[body.name] = self._lump_point_contacts(
+                        fn[:, :, k], ff[:, :, k], st[:, :, k]
+                    )
+                    continue
                 cn[body.name] = fn[:, :, k].copy()
                 cf[body.name] = ff[:, :, k].copy()
                 cs[body.name] = st[:, :, k] & (fn[:, :, k] > 0)

@@ -29,6 +29,25 @@ local frame (:func:`fem_shape`):
 - :class:`RingIndenter` -> closed ``fem.TriangleMesh`` of its 64-sided annulus, pressed along its local
   +-z (the annular face first).
 
+Sub-vertex contact (``MembraneSimulator(contact_subdivisions=n)``, ``SolverOptions.contact_subdivisions``;
+off, n = 1, by default). The FEM contact is between the indenter and contact points of the membrane's
+surface: by default its vertices, ~9-10 mm apart on the coarse (cap 8) membrane, so the thesis's 1 cm
+fingertip (r = 5 mm) aimed between them passes through the triangles (no onset at the midpoint of an
+edge at the pole; contact lost past 5 mm at a triangle's centroid). With n > 1 the points are the grid of
+the n-subdivision of every surface triangle (see :mod:`defgraspnets.fem.contact`), and the onset is found
+from the contact points on the outer surface. Measured (``benchmarks/fem_triangle_contact_cpu.md``, 2-core
+CPU, sealed at 1.5 kPa, radial pokes 5-25 mm at the pole, a vertex, an edge midpoint and a centroid): with
+n = 2 or 3 every landing point converges at every depth, at 2-4x the vertex contact's Newton iterations
+and time per path (cap 8, n = 3: 629 Newton iterations, 12 s for the four paths; the cap-16 membrane with
+vertex contact: 1189, 148 s). But the force then still depends on where the fingertip lands: 32-41 % apart
+at 5 mm, 9-13 % at 25 mm (cap 16: 11 % and 4 %), and the coarse membrane stays 28-93 % stiffer than the
+cap-16 one. Neither is contact: the 20 mm sphere with vertex contact shows the same landing dependence on
+cap 8 (an edge midpoint 1.58 x the pole's force at 5 mm): the FEM field is linear across each 9-10 mm face,
+so a load narrower than a face landing between its vertices is spread over them and meets a stiffer
+surface than at a vertex (4 layers through the thickness instead of 2 change the forces by < 3 %).
+Sub-vertex contact removes the slipping through, not the coarse mesh's bias; the cap-16 membrane remains
+the reference for the fingertip.
+
 The FEM body's local z must be its travel axis, so its frame is the indenter's pose frame turned by a
 symmetry Q of the shape that maps local z onto the direction (:meth:`MembraneSimulator._body_frame`);
 such a Q exists exactly for the directions listed.
@@ -250,6 +269,12 @@ class MembraneSimulator:
         options: FEM :class:`~defgraspnets.fem.SolverOptions` (default: :func:`membrane_solver_options`).
         inflation_steps: load steps of the inflation.
         device: Warp device of the solver and the camera ("cpu", "cuda", ...); None = Warp's default.
+        contact_subdivisions: n, sub-vertex contact (``SolverOptions.contact_subdivisions``, replaces the
+            options' value when given): the indenter touches the grid points of the n-subdivision of every
+            membrane surface triangle instead of its vertices alone, so an indenter narrower than the
+            vertex spacing (the 1 cm fingertip on the cap-8 membrane, vertices ~9-10 mm apart) no longer
+            slips between the vertices. None: the options' value (1, vertex contact, by default). Measured
+            in ``benchmarks/fem_triangle_contact_cpu.md`` (module docstring).
 
     The membrane is inflated on construction (:attr:`reference`).
     """
@@ -266,6 +291,7 @@ class MembraneSimulator:
         options: fem.SolverOptions | None = None,
         inflation_steps: int = 2,
         device: str | None = None,
+        contact_subdivisions: int | None = None,
     ):
         if not isinstance(sensor, MembraneSensor):
             raise TypeError(f"sensor must be a MembraneSensor, got {type(sensor).__name__}")
@@ -289,6 +315,10 @@ class MembraneSimulator:
             "indenter", shape, control=fem.Control.displacement((0.0, 0.0, 1.0)), friction=float(friction)
         )
 
+        options = options or membrane_solver_options(device)
+        if contact_subdivisions is not None:
+            options = replace(options, contact_subdivisions=contact_subdivisions)
+
         def build_solver(batch_size: int) -> fem.QuasiStaticSolver:
             return fem.QuasiStaticSolver(
                 sensor.mesh,
@@ -297,7 +327,7 @@ class MembraneSimulator:
                 batch_size=batch_size,
                 device=device,
                 fixed=sensor.clamped_vertices,
-                options=options or membrane_solver_options(device),
+                options=options,
                 pressure_surface=fem.PressureSurface(
                     sensor.inner_faces, sensor.rim_center, external_volume=dims.housing_volume
                 ),
@@ -381,7 +411,7 @@ class MembraneSimulator:
         """
         indenter = self.indenter if indenter is None else indenter
         body = indenter.with_pose(indentation.pose)
-        x = body.pose.inverse_apply(self.inflated.positions[0][self.sensor.outer_vertices])
+        x = body.pose.inverse_apply(self._outer_contact_points())
         d = np.asarray(indentation.direction)
         d_local = body.pose.rotation.inv().apply(d)
 
@@ -416,6 +446,21 @@ class MembraneSimulator:
             k = first_touch(inner)
             lo, hi = (inner[k - 1] if k else lo), (inner[k] if k < len(inner) else hi)
         return 0.5 * (lo + hi)
+
+    def _outer_contact_points(self) -> np.ndarray:
+        """(P_o, 3) the inflated membrane's contact points on its outer surface: the outer vertices, and with
+        sub-vertex contact (``contact_subdivisions`` > 1) the solver's points on the outer triangles too, so
+        that the onset of an indentation is where the indenter first touches a contact point (a small
+        indenter landing between the vertices touches the triangle's points first)."""
+        positions = self.inflated.positions[0]
+        solver = self.solver
+        if solver.options.contact_subdivisions == 1:
+            return positions[self.sensor.outer_vertices]
+        outer = np.zeros(len(positions), dtype=bool)
+        outer[self.sensor.outer_vertices] = True
+        vertices, weights = solver.contact_point_vertices, solver.contact_point_weights
+        on_outer = outer[vertices].all(axis=1)
+        return np.einsum("pij,pi->pj", positions[vertices[on_outer]], weights[on_outer])
 
     def _body_frame(self, indentation: Indentation) -> np.ndarray:
         """4x4 pose of the FEM body whose local z is the indentation direction (travel axis).
