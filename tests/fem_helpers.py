@@ -185,3 +185,22 @@ def sealed_pole_poke(cap_divisions: int, depth: float, **solver_overrides):
         device="cpu",
     )
     return sim, sim.indent([sim.pole_indentation(depth)], render=False)[0]
+
+
+def pressed_block(mu: float, normal_force: float = 1.0, E: float = 1e5, size: float = 0.02, **options):
+    """The contact tests' block: a cube of edge ``size`` [m] (3 x 3 x 3 hexes) on a floor plane of Coulomb
+    coefficient ``mu``, pressed from above with ``normal_force`` [N] by a force-controlled plane, solved and
+    checked converged; ``options``: SolverOptions fields. Returns (mesh, solver)."""
+    from defgraspnets import fem
+
+    L = size
+    mesh = fem.TetMesh.box(size=(L, L, L), divisions=(3, 3, 3), origin=(-L / 2, -L / 2, 0))
+    floor = fem.RigidBody("floor", fem.Plane(point=(0, 0, 0), normal=(0, 0, 1)), friction=mu)
+    press = fem.RigidBody(
+        "press", fem.Plane(point=(0, 0, L), normal=(0, 0, -1)), control=fem.Control.force((0, 0, -1))
+    )
+    solver = fem.QuasiStaticSolver(
+        mesh, [floor, press], fem.Material(E, 0.3, 1000.0), device="cpu", options=fem.SolverOptions(**options)
+    )
+    solver.solve(targets={"press": normal_force}).require_converged()
+    return mesh, solver

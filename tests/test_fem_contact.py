@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 import warp as wp
-from fem_helpers import box_pad, sphere_octant_mesh
+from fem_helpers import box_pad, pressed_block, sphere_octant_mesh
 
 from defgraspnets import fem
 from defgraspnets.fem import contact as ck
@@ -215,22 +215,10 @@ def test_hertz_sphere_between_planes():
     assert fit.x[0] == pytest.approx(1.0, abs=0.03)
 
 
-def _pressed_block(mu, normal_force=1.0, E=1e5):
-    mesh = fem.TetMesh.box(size=(L, L, L), divisions=(3, 3, 3), origin=(-L / 2, -L / 2, 0))
-    floor = fem.RigidBody("floor", fem.Plane(point=(0, 0, 0), normal=(0, 0, 1)), friction=mu)
-    press = fem.RigidBody(
-        "press", fem.Plane(point=(0, 0, L), normal=(0, 0, -1)), control=fem.Control.force((0, 0, -1))
-    )
-    solver = fem.QuasiStaticSolver(mesh, [floor, press], fem.Material(E, 0.3, 1000.0), device="cpu")
-    eq = solver.solve(targets={"press": normal_force})
-    eq.require_converged()
-    return mesh, solver
-
-
 @pytest.mark.parametrize("ratio", [0.5, 0.9])
 def test_friction_holds_a_tangential_load_below_mu_n(ratio):
     mu, normal = 0.5, 1.0
-    mesh, solver = _pressed_block(mu, normal)
+    mesh, solver = pressed_block(mu, normal)
     mass = mesh.mass(1000.0)
     tangential = ratio * mu * normal
     eq = solver.solve(body_load=fem.BodyLoad(gravity=(tangential / mass, 0, 0)))  # uniform push along +x
@@ -254,7 +242,7 @@ def test_friction_holds_a_tangential_load_below_mu_n(ratio):
 
 def test_friction_slips_above_mu_n_and_reports_the_load_at_slip():
     mu, normal = 0.5, 1.0
-    mesh, solver = _pressed_block(mu, normal)
+    mesh, solver = pressed_block(mu, normal)
     mass = mesh.mass(1000.0)
     tangential = 2.0 * mu * normal
     eq = solver.solve(body_load=fem.BodyLoad(gravity=(tangential / mass, 0, 0)))
@@ -464,20 +452,6 @@ def test_contact_normal_turning_matches_finite_differences(kind, shape, points):
     assert np.abs(H).max() > 100.0  # curvature 1 / (distance to the centre or inner box) is present
 
 
-def _pressed_block_with_stick_slip(stick_slip, mu=0.5, normal=1.0):
-    mesh = fem.TetMesh.box(size=(L, L, L), divisions=(3, 3, 3), origin=(-L / 2, -L / 2, 0))
-    floor = fem.RigidBody("floor", fem.Plane(point=(0, 0, 0), normal=(0, 0, 1)), friction=mu)
-    press = fem.RigidBody(
-        "press", fem.Plane(point=(0, 0, L), normal=(0, 0, -1)), control=fem.Control.force((0, 0, -1))
-    )
-    options = fem.SolverOptions(friction_stick_slip=stick_slip)
-    solver = fem.QuasiStaticSolver(
-        mesh, [floor, press], fem.Material(1e5, 0.3, 1000.0), device="cpu", options=options
-    )
-    solver.solve(targets={"press": normal}).require_converged()
-    return mesh, solver
-
-
 def test_friction_stick_slip_bounds_the_stick_zone_and_carries_the_load():
     """``friction_stick_slip`` = c: a sticking contact shifts by at most c h_i (its stick zone, far wider
     than the penalty's mu N / k_i), friction still carries a tangential load below mu N, in fewer Newton
@@ -485,7 +459,7 @@ def test_friction_stick_slip_bounds_the_stick_zone_and_carries_the_load():
     mu, normal, c = 0.5, 1.0, 0.05
     iterations = {}
     for stick_slip in (0.0, c):
-        mesh, solver = _pressed_block_with_stick_slip(stick_slip, mu, normal)
+        mesh, solver = pressed_block(mu, normal, friction_stick_slip=stick_slip)
         tangential = 0.9 * mu * normal
         eq = solver.solve(body_load=fem.BodyLoad(gravity=(tangential / mesh.mass(1000.0), 0, 0)))
         eq.require_converged()
@@ -510,7 +484,7 @@ def test_friction_stick_slip_keeps_the_load_at_slip():
     """Twice the Coulomb limit: the block slides at the load mu N with and without the regularisation."""
     mu, normal = 0.5, 1.0
     for stick_slip in (0.0, 0.05):
-        mesh, solver = _pressed_block_with_stick_slip(stick_slip, mu, normal)
+        mesh, solver = pressed_block(mu, normal, friction_stick_slip=stick_slip)
         eq = solver.solve(body_load=fem.BodyLoad(gravity=(2 * mu * normal / mesh.mass(1000.0), 0, 0)))
         assert eq.status[0] == fem.SolveStatus.ESCAPED
         assert eq.load_fraction[0] == pytest.approx(0.5, abs=0.02)

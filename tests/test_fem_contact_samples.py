@@ -8,6 +8,7 @@ per point carried through copied and streamed states."""
 import numpy as np
 import pytest
 import warp as wp
+from fem_helpers import pressed_block
 
 from defgraspnets import fem
 from defgraspnets.fem import contact as ck
@@ -257,29 +258,12 @@ def test_a_sphere_as_wide_as_the_vertex_spacing_is_caught_by_the_samples(n):
     assert pen < 0.4 * depth
 
 
-def _pressed_block(mu, n, normal=1.0, E=1e5):
-    """A 20 mm cube pressed with ``normal`` N onto a frictional floor (the contact tests' block), with the
-    points of the n-subdivision."""
-    mesh = fem.TetMesh.box(size=(L, L, L), divisions=(3, 3, 3), origin=(-L / 2, -L / 2, 0))
-    floor = fem.RigidBody("floor", fem.Plane(point=(0, 0, 0), normal=(0, 0, 1)), friction=mu)
-    press = fem.RigidBody(
-        "press", fem.Plane(point=(0, 0, L), normal=(0, 0, -1)), control=fem.Control.force((0, 0, -1))
-    )
-    options = fem.SolverOptions(contact_subdivisions=n)
-    solver = fem.QuasiStaticSolver(
-        mesh, [floor, press], fem.Material(E, 0.3, 1000.0), device="cpu", options=options
-    )
-    eq = solver.solve(targets={"press": normal})
-    eq.require_converged()
-    return mesh, solver
-
-
 def test_friction_on_samples_holds_below_mu_n_and_slips_above():
     """Stick anchors per (problem, point, body): the block holds a push of 0.9 mu N with its contact patch
     sticking (the points between the vertices carry their share of the friction), and slides at mu N under
     a push of 2 mu N."""
     mu, normal = 0.5, 1.0
-    mesh, solver = _pressed_block(mu, 2, normal)
+    mesh, solver = pressed_block(mu, normal, contact_subdivisions=2)
     mass = mesh.mass(1000.0)
     tangential = 0.9 * mu * normal
     eq = solver.solve(body_load=fem.BodyLoad(gravity=(tangential / mass, 0, 0)))
