@@ -29,8 +29,9 @@ PARTS = ("test", "val", "train", "all")
 
 
 def load(ckpt_path: str, cfg: DictConfig, device):
-    """(predictor module, datamodule) of a checkpoint, the datamodule with ``cfg.data`` overrides; for
-    ``cfg.part == "train"`` its training part holds the evaluation steps (not the training steps)."""
+    """(predictor module, datamodule, level name) of a checkpoint, the datamodule with ``cfg.data``
+    overrides; for ``cfg.part == "train"`` its training part holds the evaluation steps (not the training
+    steps). The level name is the split the checkpoint was trained with (the rows' label)."""
 
     from defgraspnets.data.datamodule import GraspDataModule
     from defgraspnets.models.checkpoints import read_checkpoint
@@ -41,14 +42,20 @@ def load(ckpt_path: str, cfg: DictConfig, device):
     dm_hparams = dict(ckpt.get("datamodule_hyper_parameters") or {})
     if not dm_hparams:
         raise KeyError(f"{path}: no datamodule hyperparameters stored (was it trained with GraspDataModule?)")
+    level_name = dm_hparams.get("split", "unseen_grasps")
     for key, value in OmegaConf.to_container(cfg.data, resolve=True).items():
         if value is not None:
             dm_hparams[key] = value
     if cfg.part == "train":
         dm_hparams["train_steps"] = dm_hparams.get("eval_steps")
+    if cfg.part == "all":
+        # every solved squeeze, whatever the split: the checkpoint's level need not fit the data (an
+        # unseen_real model on data without real objects), so the data is split by grasps only to load it;
+        # rows keep the checkpoint's level name
+        dm_hparams.update(split="unseen_grasps", test_objects=None, train_objects=None)
     module = DefGraspNetsModule.load_from_checkpoint(path, map_location="cpu").to(device).eval()
     module.use_displacement_target(dm_hparams.get("displacement", "total"))
-    return module, GraspDataModule(**dm_hparams)
+    return module, GraspDataModule(**dm_hparams), level_name
 
 
 def evaluate_checkpoint(ckpt_path: str, cfg: DictConfig, out_dir: Path) -> tuple[dict, list[dict]]:
@@ -64,7 +71,7 @@ def evaluate_checkpoint(ckpt_path: str, cfg: DictConfig, out_dir: Path) -> tuple
     from defgraspnets.eval.report import plot_fields
 
     device = torch.device(cfg.device)
-    module, dm = load(ckpt_path, cfg, device)
+    module, dm, level_name = load(ckpt_path, cfg, device)
     dm.setup("test")
     test = dm.datasets[cfg.part]
     idx = np.arange(len(test))
@@ -78,12 +85,12 @@ def evaluate_checkpoint(ckpt_path: str, cfg: DictConfig, out_dir: Path) -> tuple
     metrics = FieldMetrics(min_relative_spread=cfg.min_relative_spread)
     net = module.net
     with torch.no_grad():
-        for batch in tqdm(loader, desc=f"{cfg.part} {dm.split_name}", leave=False):
+        for batch in tqdm(loader, desc=f"{cfg.part} {level_name}", leave=False):
             batch = batch.to(device)
             stress, disp = net.fields(batch)
             metrics.update(stress, disp, batch)
     # a part other than the test part is named in every row and file ("unseen_grasps/train")
-    split = dm.split_name if cfg.part == "test" else f"{dm.split_name}/{cfg.part}"
+    split = level_name if cfg.part == "test" else f"{level_name}/{cfg.part}"
     stem = split.replace("/", "_")
     # which field "deformation" is: the total displacement or the one without the object's rigid motion
     level = {

@@ -62,6 +62,8 @@ def test_vtu_round_trip(tmp_path):
         (UNIT_TET, [[0, 1, 2]], r"shape \(M, 4\)"),
         (UNIT_TET[:, :2], [[0, 1, 2, 3]], r"shape \(N, 3\)"),
         (UNIT_TET, [[0, 1, 2, 3.5]], "integers"),
+        ("abc", [[0, 1, 2, 3]], r"points must be an \(N, 3\) array of numbers"),
+        ([["0", "0", "x"]] * 4, [[0, 1, 2, 3]], "array of numbers"),
     ],
 )
 def test_broken_meshes_are_rejected_with_a_clear_error(points, tets, message):

@@ -496,3 +496,36 @@ def test_streamed_forearm_paths_match_batches_and_resume(small_sensor, tmp_path,
         b.wrench[order_b], a.wrench[order_a], rtol=0, atol=5e-3 * np.abs(a.wrench).max()
     )
     assert np.abs(b.wrench[:, :2]).max() > 0.05  # N: the shears drag the sensor sideways
+
+
+def test_bad_dataset_key_and_out_dir_are_named_before_any_work(tmp_path, monkeypatch):
+    """`dataset=foo` names the config key (not the library argument), and an out_dir that is a file is refused
+    before the membrane is built: nothing is simulated or written."""
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    import defgraspnets.tactile.membrane as membrane
+    from defgraspnets.tactile.datasets import generate_tactile_from_config
+
+    def no_build(*args, **kwargs):
+        raise AssertionError("the membrane was built before the config was checked")
+
+    monkeypatch.setattr(membrane, "build_membrane", no_build)
+    root = Path(__file__).resolve().parents[1]
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    with initialize_config_dir(config_dir=str(root / "configs"), version_base="1.3"):
+        bad_name = compose(
+            config_name="datagen/tactile",
+            overrides=["dataset=foo", f"out_dir={tmp_path}", f"paths.root_dir={root}"],
+        )
+        bad_dir = compose(
+            config_name="datagen/tactile", overrides=[f"out_dir={afile}", f"paths.root_dir={root}"]
+        )
+    with pytest.raises(ValueError, match="dataset must be 'poke' or 'forearm', got 'foo'"):
+        generate_tactile_from_config(OmegaConf.to_container(bad_name))
+    with pytest.raises(NotADirectoryError, match=f"out_dir {afile} is a file, not a directory"):
+        generate_tactile_from_config(OmegaConf.to_container(bad_dir))
+    assert afile.read_text() == "x" and sorted(p.name for p in tmp_path.iterdir()) == ["afile"]

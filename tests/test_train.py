@@ -203,6 +203,32 @@ def test_evaluate_script_on_every_squeeze_of_new_data(first_run, data_root):
     )
 
 
+def test_evaluate_every_squeeze_with_a_checkpoint_of_another_level(first_run, data_root):
+    """part=all evaluates whatever the checkpoint's level: an unseen_real model on data without real objects
+    (its split could not be made there) runs, and its rows keep its level's name."""
+    import torch
+
+    ckpt = torch.load(first_run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    ckpt["datamodule_hyper_parameters"]["split"] = "unseen_real"
+    real_ckpt = data_root / "unseen_real_model.ckpt"
+    torch.save(ckpt, real_ckpt)
+    fresh = make_shards(data_root / "fresh_grasps_real", grasps=4, num_steps=2, with_real=False)
+    out = data_root / "eval_part_all_real"
+    r = _run(
+        "scripts/evaluate.py",
+        f"ckpt_path={real_ckpt}",
+        f"hydra.run.dir={out}",
+        "extras.print_config=false",
+        "part=all",
+        f"data.data_dir={fresh}",
+        "plots=0",
+        cwd=out.parent,
+    )
+    assert r.returncode == 0, r.stderr[-4000:]
+    (level,) = json.loads((out / "results.json").read_text())["levels"]
+    assert level["split"] == "unseen_real/all" and level["samples"] > 0
+
+
 def test_evaluate_refuses_another_displacement_target(first_run, data_root):
     r = _evaluate(first_run, data_root / "eval_total", "+data.displacement=total", "plots=0")
     assert r.returncode != 0

@@ -61,7 +61,10 @@ class TetMesh:
     _validated: bool = field(default=False, repr=False)
 
     def __post_init__(self):
-        points = np.ascontiguousarray(np.asarray(self.points, dtype=np.float64))
+        try:
+            points = np.ascontiguousarray(np.asarray(self.points, dtype=np.float64))
+        except (TypeError, ValueError) as err:
+            raise MeshError(f"{self.name}: points must be an (N, 3) array of numbers [m] ({err})") from None
         tets = np.asarray(self.tets)
         if tets.size and not np.issubdtype(tets.dtype, np.integer):
             if not np.all(np.isfinite(tets)) or np.any(tets != np.round(tets)):

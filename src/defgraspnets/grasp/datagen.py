@@ -56,6 +56,7 @@ from defgraspnets.data.grasp_schema import (
     ObjectRecord,
     shard_file_name,
 )
+from defgraspnets.data.output_dir import check_output_dir
 from defgraspnets.data.splits import named_rng
 
 from . import features as _features
@@ -282,18 +283,6 @@ def object_moduli(
     rng = named_rng(seed, f"moduli/{name}")
     chosen = np.sort(rng.choice(len(moduli), size=int(per_object), replace=False))
     return [moduli[i] for i in chosen]
-
-
-def _check_out_dir(out_dir: Path) -> None:
-    """Raise unless ``out_dir`` is, or can be made, a writable directory (naming what is in the way)."""
-    existing = out_dir
-    while not existing.exists() and existing != existing.parent:
-        existing = existing.parent
-    if not existing.is_dir():
-        what = "is" if existing == out_dir else f"lies under {existing}, which is"
-        raise NotADirectoryError(f"out_dir {out_dir} {what} a file, not a directory")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise PermissionError(f"out_dir {out_dir}: {existing} is not writable")
 
 
 def _is_number(value) -> bool:
@@ -909,7 +898,7 @@ def generate_object_shards(
     object_moduli("", moduli, moduli_per_object)  # a bad count fails before the object is meshed
     layout = experiment_layout(names, settings) if names else None
     out_dir = Path(out_dir)
-    _check_out_dir(out_dir)  # before the object is meshed and its grasps simulated
+    check_output_dir(out_dir)  # before the object is meshed and its grasps simulated
     if isinstance(obj, fem.TetMesh):
         mesh = obj
     elif isinstance(obj, str):

@@ -722,10 +722,15 @@ def generate_tactile_from_config(cfg: Mapping, out_path=None, config_text: str =
     on Warp's current device. Shared by ``datagen/tactile.py`` and ``scripts/benchmark_tactile.py``."""
     from pathlib import Path
 
+    from defgraspnets.data.output_dir import check_output_dir
     from defgraspnets.tactile.camera import PICO_FLEXX
     from defgraspnets.tactile.membrane import build_membrane
     from defgraspnets.tactile.sensor import membrane_solver_options
 
+    if cfg["dataset"] not in ("poke", "forearm"):
+        raise ValueError(f"dataset must be 'poke' or 'forearm', got {cfg['dataset']!r}")
+    if out_path is None:
+        check_output_dir(cfg["out_dir"])  # before the membrane is built and any state simulated
     solver_options = membrane_solver_options(cfg["device"], **dict(cfg["solver"]))
     sensor = build_membrane(cap_divisions=cfg["membrane"]["cap_divisions"], layers=cfg["membrane"]["layers"])
     if cfg["dataset"] == "poke":
