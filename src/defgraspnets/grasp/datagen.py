@@ -194,7 +194,7 @@ def resolve_object_mesh(
             raise ObjectMeshError(
                 f"{path}: non-finite (NaN or inf) coordinates at vertices [{shown}] ({bad.size} in all)"
             )
-        surface = trimesh.load(path, force="mesh")
+        surface = raw.process()  # = trimesh.load(path, force="mesh"), without reading the file twice
         return tetrahedralize(surface, target_nodes, mesher, cache_dir=cache_dir, name=path.stem)
     return load_object_mesh(spec, target_nodes, mesher, cache_dir)[0]
 
