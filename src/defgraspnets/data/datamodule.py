@@ -23,7 +23,7 @@ from defgraspnets.data.dataset import (
     sample_index,
 )
 from defgraspnets.data.grasp_schema import GraspShard
-from defgraspnets.data.splits import SPLITS, ShardInfo, Split, make_split
+from defgraspnets.data.splits import DRAWS, SPLITS, ShardInfo, Split, make_split
 from defgraspnets.models.graph import DEFAULT_CONTACT_RADIUS
 
 __all__ = ["GraspDataModule"]
@@ -59,6 +59,10 @@ class GraspDataModule(LightningDataModule):
             ``"grasp"`` single grasps (the default here, so that checkpoints saved before the key existed
             rebuild their split; the Hydra config defaults to ``axis``). See
             :func:`~defgraspnets.data.splits.make_split`.
+        holdout_draw: ``"stable"`` draws held-out units by per-unit keys (a ramp that flips between solved
+            and failed in regenerated data moves only itself, so a model can resume on regenerated data),
+            ``"permutation"`` by a permutation of the solved units (the default here, so that checkpoints
+            saved before the key existed rebuild their split; the Hydra config defaults to ``stable``).
     """
 
     def __init__(
@@ -84,10 +88,13 @@ class GraspDataModule(LightningDataModule):
         persistent_workers: bool = False,
         statistics_samples: int = 512,
         holdout: str = "grasp",
+        holdout_draw: str = "permutation",
     ):
         super().__init__()
         if split not in SPLITS:
             raise ValueError(f"data.split={split!r} is not one of {SPLITS}")
+        if holdout_draw not in DRAWS:
+            raise ValueError(f"data.holdout_draw={holdout_draw!r} is not one of {DRAWS}")
         if batch_size < 1:
             raise ValueError(f"data.batch_size must be >= 1, got {batch_size}")
         if contact_radius <= 0:
@@ -131,6 +138,7 @@ class GraspDataModule(LightningDataModule):
             self.test_objects,
             self.train_objects,
             hp.holdout,
+            hp.holdout_draw,
         )
         # "all": every solved squeeze of the data, whatever the split (scripts/evaluate.py part=all)
         parts = {

@@ -18,6 +18,16 @@ grasps to rank), so ``val`` always measures level-1 generalization and ``test`` 
 Randomness is seeded per object/category name (``seed`` and a CRC of the name), so adding an object does
 not reshuffle the others.
 
+What is held out is drawn in one of two ways (``draw``). ``"permutation"`` (the splits of checkpoints trained
+before session 42) takes the first units of a seeded permutation of the *solved* units (grasps, axes,
+moduli or objects) of an object or category, so when a regenerated data set solves one ramp more or fewer
+(near-budget ramps flip between CUDA runs: 11 of 2160 in session 42), that object's whole held-out part is
+drawn anew and a model resumed on the new data trains on some of its old test grasps. ``"stable"`` gives
+every unit its own seeded random key (from the object or category name, the unit's index or modulus, and
+``seed``) and holds out the units with the lowest keys: a flipped unit enters or leaves alone, and the count
+(a fraction, rounded) moves by at most one, so the rest of the held-out part stays where it was (validation,
+drawn from what the test part leaves, may move one unit more).
+
 ``holdout="axis"`` holds out whole grasp axes at level 1 and in validation instead of single grasps. The
 antipodal sampler makes up to 4 grasps per axis (the same contact points, the approach turned about the
 axis), so a single held-out grasp usually has siblings in training. Measured (session 23,
@@ -41,6 +51,7 @@ __all__ = [
     "SPLITS",
     "HOLDOUTS",
     "DEFAULT_TEST_FRACTION",
+    "DRAWS",
     "ShardInfo",
     "Split",
     "grasp_axis_ids",
@@ -52,6 +63,7 @@ log = logging.getLogger(__name__)
 
 SPLITS = ("unseen_grasps", "unseen_E", "unseen_objects", "unseen_real")
 HOLDOUTS = ("grasp", "axis")
+DRAWS = ("stable", "permutation")
 LEVEL = {"unseen_grasps": 1, "unseen_E": 2, "unseen_objects": 3, "unseen_real": 4}
 DEFAULT_TEST_FRACTION = {
     "unseen_grasps": 0.2,
@@ -123,6 +135,22 @@ def named_rng(seed: int, name: str) -> np.random.Generator:
     return np.random.default_rng([int(seed), zlib.crc32(name.encode())])
 
 
+def _lowest_keys(
+    candidates: Sequence, count: int, draw: str, rng_name: str, seed: int, key_names=None
+) -> list:
+    """The ``count`` held-out ones of ``candidates`` (in their given order): the first of a seeded
+    permutation (``draw="permutation"``), or those with the lowest per-candidate keys (``"stable"``;
+    ``key_names[i]`` names candidate i's key, default its value)."""
+    candidates = list(candidates)
+    if draw == "permutation":
+        order = named_rng(seed, rng_name).permutation(len(candidates))
+    else:
+        names = candidates if key_names is None else list(key_names)
+        keys = [named_rng(seed, f"{rng_name}/{name}").random() for name in names]
+        order = np.argsort(keys, kind="stable")
+    return [candidates[i] for i in order[:count]]
+
+
 def _count(n: int, fraction: float, what: str) -> int:
     """How many of n go to the held-out part: round(fraction n), clipped to [1, n - 1]."""
     if n < 2:
@@ -147,10 +175,12 @@ def _grasp_holdout(
     what: str,
     minimum: int = 1,
     holdout: str = "grasp",
+    draw: str = "permutation",
 ):
     """Split entries per object by grasp ``(shard, g)`` (``holdout="grasp"``) or by grasp axis (``"axis"``:
     all rotations about one axis on the same side); returns (kept, held_out). At least ``minimum`` units
-    are held out of an object that keeps as many."""
+    are held out of an object that keeps as many. ``draw``: see the module docstring (a stable key names
+    the unit by its shard's rank among the object's shards and its grasp or axis index)."""
     held = np.zeros(len(entries), dtype=bool)
     if fraction <= 0 or not len(entries):
         return entries, entries[held]
@@ -172,7 +202,9 @@ def _grasp_holdout(
         count = _count(len(units), fraction, what)
         if len(units) >= 2 * minimum:
             count = max(count, minimum)
-        pick = units[named_rng(seed, f"{what}/{name}").permutation(len(units))[:count]]
+        shard_rank = {sh: r for r, sh in enumerate(np.unique(units // 1_000_000))}
+        unit_names = [f"{shard_rank[u // 1_000_000]}/{u % 1_000_000}" for u in units]
+        pick = _lowest_keys(units, count, draw, f"{what}/{name}", seed, unit_names)
         held |= on & np.isin(key, pick)
         if holdout == "axis" and count == 1:
             single_axis.append(str(name))
@@ -203,6 +235,7 @@ def make_split(
     test_objects: Sequence[str] | None = None,
     train_objects: Sequence[str] | None = None,
     holdout: str = "grasp",
+    draw: str = "permutation",
 ) -> Split:
     """Split the solved entries of ``infos`` (one per shard) for generalization level ``split``.
 
@@ -215,6 +248,9 @@ def make_split(
         holdout: what the unseen-grasps test part and every validation part hold out per object: single
             grasps (``"grasp"``, the splits of checkpoints trained before session 23) or whole grasp axes
             (``"axis"``: a held-out grasp shares no contact points with a training grasp).
+        draw: how held-out units are drawn: ``"permutation"`` (splits before session 42) or ``"stable"``
+            (per-unit keys: a ramp that flips between solved and failed in regenerated data moves only
+            itself; see the module docstring).
 
     Raises:
         ValueError: unknown split, unknown object names, or a split that would leave a part empty.
@@ -223,6 +259,8 @@ def make_split(
         raise ValueError(f"unknown split {split!r}; choose one of {SPLITS}")
     if holdout not in HOLDOUTS:
         raise ValueError(f"unknown holdout {holdout!r}; choose one of {HOLDOUTS}")
+    if draw not in DRAWS:
+        raise ValueError(f"unknown draw {draw!r}; choose one of {DRAWS}")
     if not 0 <= val_fraction < 1:
         raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction}")
     frac = DEFAULT_TEST_FRACTION[split] if test_fraction is None else float(test_fraction)
@@ -235,7 +273,7 @@ def make_split(
         raise ValueError("no solved (status 0) squeeze in the data: nothing to train on")
 
     if split == "unseen_grasps":
-        train, test = _grasp_holdout(all_entries, infos, frac, seed, "test", holdout=holdout)
+        train, test = _grasp_holdout(all_entries, infos, frac, seed, "test", holdout=holdout, draw=draw)
         test_names = train_names = names
     elif split == "unseen_E":
         held = np.zeros(len(all_entries), dtype=bool)
@@ -246,7 +284,8 @@ def make_split(
             if len(unique) < 2:
                 log.warning("object %s has a single Young's modulus: kept for training only", name)
                 continue
-            test_e = named_rng(seed, f"E/{name}").permutation(unique)[: _count(len(unique), frac, "moduli")]
+            count = _count(len(unique), frac, "moduli")
+            test_e = _lowest_keys(unique, count, draw, f"E/{name}", seed, [f"{e:.6f}" for e in unique])
             held[np.flatnonzero(on)[np.isin(log_e, test_e)]] = True
         train, test = all_entries[~held], all_entries[held]
         test_names = train_names = names
@@ -261,8 +300,8 @@ def make_split(
             if len(members) < 2:
                 log.warning("category %s has a single primitive (%s): kept for training only", cat, members)
                 continue
-            order = named_rng(seed, f"objects/{cat}").permutation(len(members))
-            test_names += [members[i] for i in order[: _count(len(members), frac, f"objects of {cat}")]]
+            count = _count(len(members), frac, f"objects of {cat}")
+            test_names += _lowest_keys(members, count, draw, f"objects/{cat}", seed)
         train_names = [n for n in prim if n not in test_names]
         test_names = sorted(test_names)
     else:  # unseen_real
@@ -289,7 +328,9 @@ def make_split(
     # two grasps at least per object, so that validation ranks grasps (tau needs two per object, E and step)
     # (one axis holds up to 4 grasps: with holdout="axis" one axis is enough)
     minimum = 2 if holdout == "grasp" else 1
-    train, val = _grasp_holdout(train, infos, val_fraction, seed, "val", minimum=minimum, holdout=holdout)
+    train, val = _grasp_holdout(
+        train, infos, val_fraction, seed, "val", minimum=minimum, holdout=holdout, draw=draw
+    )
     for part, arr in (("train", train), ("test", test)):
         if not len(arr):
             raise ValueError(f"split {split!r} leaves the {part} part empty")
