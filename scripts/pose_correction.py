@@ -55,6 +55,7 @@ def main(cfg: DictConfig) -> dict:
         gauge_pressure=cfg.sensor.gauge_pressure,
         closed=cfg.sensor.closed,
         friction=cfg.sensor.friction,
+        contact_subdivisions=cfg.sensor.contact_subdivisions,
         intrinsics=intrinsics,
     )
     sim = make_simulator(sensor, SphereIndenter(radius=cfg.fingertip_radius), **common)

@@ -45,6 +45,7 @@ def main(cfg: DictConfig) -> dict:
         friction=c["friction"],
         max_step=c["max_step"],
         device=c["device"],
+        contact_subdivisions=c["contact_subdivisions"],
         log=log.info,
     )
     log.info("wrote %s/contact_regions.json (%.0f s)", c["out_dir"], report["seconds"])

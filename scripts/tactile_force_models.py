@@ -53,6 +53,7 @@ def main(cfg: DictConfig) -> dict:
         friction=c["friction"],
         max_step=c["max_step"],
         device=c["device"],
+        contact_subdivisions=c["contact_subdivisions"],
         log=log.info,
     )
     for pv, row in report["table_2_1"].items():

@@ -30,7 +30,7 @@ def sphere_sim(sensor):
     return st.make_study_simulator(sensor, SphereIndenter(radius=0.01), WORKING)
 
 
-def test_bad_inputs_give_clear_errors(sphere_sim):
+def test_bad_inputs_give_clear_errors(sphere_sim, tmp_path):
     with pytest.raises(ValueError, match="gauge_pressure"):
         st.GasState(-1.0)
     with pytest.raises(ValueError, match="increasing"):
@@ -53,6 +53,14 @@ def test_bad_inputs_give_clear_errors(sphere_sim):
     )
     with pytest.raises(ValueError, match="order-4"):
         st.fit_force_models([one_state], order=4)
+    for study in (st.run_contact_region_study, st.run_force_model_study):
+        with pytest.raises(ValueError, match="contact_subdivisions must be an int >= 1, got 0"):
+            study(
+                tmp_path,
+                **({"obstacles": {}} if study is st.run_contact_region_study else {}),
+                contact_subdivisions=0,
+            )
+    assert not tmp_path.exists() or not any(tmp_path.iterdir())  # refused before writing anything
 
 
 def test_areas_grow_with_depth_and_the_sweep_survives_json(sphere_sim):
@@ -62,7 +70,7 @@ def test_areas_grow_with_depth_and_the_sweep_survives_json(sphere_sim):
     assert np.all(np.diff(s.force) > 0)
     assert np.all(np.diff(s.deformed_area) > 0)
     assert np.all(np.diff(s.true_contact_area) >= 0) and s.true_contact_area[-1] > 0
-    assert np.all(s.contact_vertices >= 1)  # the FEM carries the load through contact vertices
+    assert np.all(s.contact_points >= 1)  # the FEM carries the load through contact points
     assert s.contact_area[-1] > s.contact_area[0] and s.contact_area[-1] > 0
     # the camera sees the inner surface pushed in by about the travel (through a 3 mm shell)
     np.testing.assert_allclose(s.indentation, s.depth, rtol=0.1)
@@ -91,7 +99,7 @@ def test_larger_sphere_has_larger_contact_area(sensor):
 def test_prism_contact_region_estimate_overlaps_the_fem_truth(sensor):
     sim = st.make_study_simulator(sensor, RECTANGULAR_PRISM, WORKING)
     r = st.contact_region_experiment(sim, depth=0.01)
-    assert r.contact_vertices >= 2 and r.force > 0
+    assert r.contact_points >= 2 and r.force > 0
     # IoU 0.5: the estimate and the FEM region share more pixels than they disagree on. The flat face
     # makes the membrane flat (kappa = 0 -> Type C) where it touches; on the coarse mesh the truth's
     # boundary is only located to about a vertex spacing, so a mismatch of a few mm is expected.
@@ -180,3 +188,33 @@ def test_contact_script_writes_consistent_json_and_figures(tmp_path):
     assert prism["pixels"]["contact"] > 0
     (sweep,) = report["area_sweeps"]
     assert sweep["depth"] == pytest.approx([0.005, 0.01]) and sweep["contact_area"][1] > 0
+
+
+@pytest.mark.slow
+def test_sub_vertex_contact_resolves_the_fingertip_in_the_area_study(tmp_path):
+    """`contact_subdivisions` reaches the studies' FEM: the 10 mm sphere pressed 12 mm into the coarse
+    membrane's pole (a vertex; the next vertices lie ~9 mm away) has a ~3.7 mm contact patch, so vertex
+    contact touches one contact point (under-resolved) and the 3-subdivision of the triangles (points
+    every ~3 mm) several; the study records the setting in its JSON."""
+    reports = {}
+    for n in (1, 3):
+        reports[n] = st.run_contact_region_study(
+            tmp_path / f"n{n}",
+            obstacles={},
+            sphere_diameters=(0.01,),
+            sweep_cap_divisions=(8,),
+            sweep_states=({"gauge_pressure": 1500.0, "closed": True},),
+            sweep_depths=(0.012,),
+            max_step=0.004,
+            contact_subdivisions=n,
+            log=lambda *_: None,
+        )
+    (one,), (three,) = reports[1]["area_sweeps"], reports[3]["area_sweeps"]
+    assert one["converged"] == [True] and three["converged"] == [True]
+    assert one["contact_points"] == [1] and one["under_resolved"]
+    assert three["contact_points"][0] > 1 and not three["under_resolved"]
+    # the same sphere and depth: the patch is the membrane's, not the contact model's (within 10 %)
+    assert three["true_contact_area"][0] == pytest.approx(one["true_contact_area"][0], rel=0.1)
+    stored = json.loads((tmp_path / "n3" / "contact_regions.json").read_text())
+    assert stored["contact_subdivisions"] == 3
+    assert stored["area_sweeps"][0]["contact_points"] == three["contact_points"]

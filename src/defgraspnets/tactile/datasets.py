@@ -578,18 +578,29 @@ def make_simulator(
     friction: float = 0.5,
     intrinsics=None,
     options=None,
+    device: str | None = None,
+    contact_subdivisions: int | None = None,
 ) -> MembraneSimulator:
     """The sensor at its pre-contact gas state: inflated to ``gauge_pressure`` [Pa], then either kept
     at that pressure (open) or sealed there (closed: PV = P V of the inflated state, Boyle's law from
     then on; the thesis's sealed sensor). ``options``: FEM solver options (None: the sensor's default,
-    :func:`~defgraspnets.tactile.sensor.membrane_solver_options`)."""
+    :func:`~defgraspnets.tactile.sensor.membrane_solver_options`); ``device``: Warp device of the solves
+    and the camera (None: Warp's default); ``contact_subdivisions``: sub-vertex contact n (None: the
+    options' value, 1 by default)."""
     from defgraspnets.tactile.camera import PICO_FLEXX
     from defgraspnets.tactile.membrane import PVState
 
     intrinsics = PICO_FLEXX if intrinsics is None else intrinsics
     neutral = sensor.cavity_volume + sensor.dimensions.housing_volume
     gas = PVState(ATMOSPHERIC_PRESSURE + gauge_pressure, neutral)
-    common = dict(batch_size=batch_size, friction=friction, intrinsics=intrinsics, options=options)
+    common = dict(
+        batch_size=batch_size,
+        friction=friction,
+        intrinsics=intrinsics,
+        options=options,
+        device=device,
+        contact_subdivisions=contact_subdivisions,
+    )
     sim = MembraneSimulator(sensor, indenter, gas, closed=False, **common)
     if not closed:
         return sim

@@ -50,6 +50,7 @@ from __future__ import annotations
 import json
 import time
 from dataclasses import asdict, dataclass, field, fields
+from functools import partial
 
 import numpy as np
 
@@ -72,7 +73,7 @@ from defgraspnets.tactile.force_models import (
 from defgraspnets.tactile.indenters import (
     SphereIndenter,
 )
-from defgraspnets.tactile.membrane import ATMOSPHERIC_PRESSURE, MembraneSensor, PVState
+from defgraspnets.tactile.membrane import ATMOSPHERIC_PRESSURE, MembraneSensor
 from defgraspnets.tactile.sensor import MembraneSimulator, TactileReading
 
 __all__ = [
@@ -84,7 +85,7 @@ __all__ = [
     "GasState",
     "area_sweep",
     "axial_force",
-    "contact_vertex_count",
+    "contact_point_count",
     "contact_region_experiment",
     "fit_force_models",
     "force_matching",
@@ -127,30 +128,28 @@ def make_study_simulator(
     intrinsics=None,
     options: fem.SolverOptions | None = None,
     device: str | None = "cpu",
+    contact_subdivisions: int | None = None,
 ) -> MembraneSimulator:
-    """The sensor at ``state``, as :func:`defgraspnets.tactile.datasets.make_simulator` (inflate open to the
+    """The sensor at ``state`` by :func:`defgraspnets.tactile.datasets.make_simulator` (inflate open to the
     gauge pressure; if closed, seal there so that P V of the inflated state stays constant), for any
     indenter :class:`~defgraspnets.tactile.sensor.MembraneSimulator` accepts, solved on the Warp ``device``
-    ("cpu", "cuda", ...; None = Warp's default)."""
-    from defgraspnets.tactile.camera import PICO_FLEXX
+    ("cpu", "cuda", ...; None = Warp's default), with sub-vertex contact ``contact_subdivisions`` (None:
+    the options' value, vertex contact by default)."""
+    from defgraspnets.tactile.datasets import make_simulator
 
     if not isinstance(state, GasState):
         raise TypeError(f"state must be a GasState, got {type(state).__name__}")
-    common = dict(
-        batch_size=1,
+    return make_simulator(
+        sensor,
+        indenter,
+        state.gauge_pressure,
+        state.closed,
         friction=friction,
-        intrinsics=PICO_FLEXX if intrinsics is None else intrinsics,
+        intrinsics=intrinsics,
         options=options,
         device=device,
+        contact_subdivisions=contact_subdivisions,
     )
-    neutral = sensor.cavity_volume + sensor.dimensions.housing_volume
-    gas = PVState(ATMOSPHERIC_PRESSURE + state.gauge_pressure, neutral)
-    sim = MembraneSimulator(sensor, indenter, gas, closed=False, **common)
-    if not state.closed:
-        return sim
-    volume = sim.reference.gas_volume
-    sealed = PVState.from_pv((ATMOSPHERIC_PRESSURE + state.gauge_pressure) * volume, volume, "sealed")
-    return MembraneSimulator(sensor, indenter, sealed, closed=True, **common)
 
 
 def state_pv(sim: MembraneSimulator) -> float:
@@ -183,10 +182,13 @@ def _outer_of_inner(sensor: MembraneSensor) -> np.ndarray:
     return outer
 
 
-def contact_vertex_count(sim: MembraneSimulator, reading: TactileReading) -> int:
-    """Number of outer-surface vertices inside the indenter (g < 0): those carrying FEM contact force."""
+def contact_point_count(sim: MembraneSimulator, reading: TactileReading) -> int:
+    """Number of the outer surface's FEM contact points inside the indenter (g < 0): those carrying contact
+    force. With vertex contact they are outer vertices; with sub-vertex contact
+    (``contact_subdivisions`` > 1) the points on the outer triangles too
+    (:meth:`~defgraspnets.tactile.sensor.MembraneSimulator.outer_contact_points`)."""
     body = sim.indenter.with_pose(reading.indenter_pose)
-    return int((body.signed_distance(reading.positions[sim.sensor.outer_vertices]) < 0).sum())
+    return int((body.signed_distance(sim.outer_contact_points(reading.positions)) < 0).sum())
 
 
 def true_contact_mask(
@@ -269,7 +271,8 @@ class ContactRegionResult:
         points: (H, W, 3) organized cloud [m]; ``labels``: (H, W) Algorithm 1 labels;
             ``true_mask``: (H, W) true contact pixels.
         comparison: estimated (Type C) vs true region: IoU, boundary errors [m], areas [m^2].
-        deformed_area: Type B+C area [m^2]; ``contact_vertices``: FEM outer vertices with g < 0.
+        deformed_area: Type B+C area [m^2]; ``contact_points``: FEM outer contact points with g < 0
+            (:func:`contact_point_count`; JSON written before session 42 calls them ``contact_vertices``).
     """
 
     indenter: str
@@ -283,7 +286,7 @@ class ContactRegionResult:
     true_mask: np.ndarray = field(repr=False)
     comparison: RegionComparison
     deformed_area: float
-    contact_vertices: int
+    contact_points: int
 
     def summary(self) -> dict:
         return {
@@ -299,7 +302,7 @@ class ContactRegionResult:
             "estimated_contact_area": self.comparison.estimated_area,
             "true_contact_area": self.comparison.true_area,
             "deformed_area": self.deformed_area,
-            "contact_vertices": self.contact_vertices,
+            "contact_points": self.contact_points,
             "pixels": {t.name.lower(): int((self.labels == t).sum()) for t in SurfaceType},
         }
 
@@ -349,7 +352,7 @@ def contact_region_experiment(
         true_mask=truth,
         comparison=cmp,
         deformed_area=region_area(cloud, cls.deformed_mask),
-        contact_vertices=contact_vertex_count(sim, reading),
+        contact_points=contact_point_count(sim, reading),
     )
 
 
@@ -373,8 +376,8 @@ class AreaSweep:
         sphere_diameter [m], state (label), closed, pv [N m].
         depth: commanded travel [m]; indentation: camera-measured [m]; force: axial FEM force [N].
         contact_area: Type C area [m^2]; deformed_area: Type B+C [m^2]; true_contact_area: the FEM
-            contact region's area on the inner-surface cloud [m^2]; contact_vertices: FEM contact
-            vertices (1 at every depth: the sphere's size is below the mesh's resolution).
+            contact region's area on the inner-surface cloud [m^2]; contact_points: FEM contact points
+            (:func:`contact_point_count`; 1 at every depth where the sphere is below the mesh's resolution).
         converged: per depth.
     """
 
@@ -388,7 +391,7 @@ class AreaSweep:
     contact_area: np.ndarray
     deformed_area: np.ndarray
     true_contact_area: np.ndarray
-    contact_vertices: np.ndarray
+    contact_points: np.ndarray
     converged: np.ndarray
     seconds: float
 
@@ -411,7 +414,7 @@ def area_sweep(
     series = sim.indent_series([sim.pole_indentation(final)], levels, max_step=max_step)
     n = len(levels)
     out = {k: np.full(n, np.nan) for k in ("indentation", "force", "contact", "deformed", "true")}
-    vertices = np.zeros(n, dtype=int)
+    points = np.zeros(n, dtype=int)
     ok = np.zeros(n, dtype=bool)
     for i, (reading,) in enumerate(series):
         if not reading.converged:
@@ -424,7 +427,7 @@ def area_sweep(
         out["contact"][i] = region_area(cloud, cls.contact_mask)
         out["deformed"][i] = region_area(cloud, cls.deformed_mask)
         out["true"][i] = region_area(cloud, true_contact_mask(sim, reading, contact_tolerance))
-        vertices[i] = contact_vertex_count(sim, reading)
+        points[i] = contact_point_count(sim, reading)
     return AreaSweep(
         sphere_diameter=2.0 * sim.indenter.radius,
         state=state,
@@ -436,7 +439,7 @@ def area_sweep(
         contact_area=out["contact"],
         deformed_area=out["deformed"],
         true_contact_area=out["true"],
-        contact_vertices=vertices,
+        contact_points=points,
         converged=ok,
         seconds=time.perf_counter() - t0,
     )
@@ -463,7 +466,7 @@ class ForceSweep:
     indentation: np.ndarray
     force: np.ndarray
     converged: np.ndarray
-    contact_vertices: np.ndarray | None = None
+    contact_points: np.ndarray | None = None
     linear: dict | None = None
     hertz: dict | None = None
     seconds: float = 0.0
@@ -484,14 +487,14 @@ def force_sweep(
     series = sim.indent_series([sim.pole_indentation(final)], levels, max_step=max_step)
     n = len(levels)
     delta, force = np.full(n, np.nan), np.full(n, np.nan)
-    vertices = np.zeros(n, dtype=int)
+    points = np.zeros(n, dtype=int)
     ok = np.zeros(n, dtype=bool)
     for i, (reading,) in enumerate(series):
         if reading.converged:
             ok[i] = True
             delta[i] = indentation_depth(reading.depth.depth, reference.depth)
             force[i] = axial_force(reading)
-            vertices[i] = contact_vertex_count(sim, reading)
+            points[i] = contact_point_count(sim, reading)
     sweep = ForceSweep(
         sphere_diameter=2.0 * sim.indenter.radius,
         state=state,
@@ -501,7 +504,7 @@ def force_sweep(
         indentation=delta,
         force=force,
         converged=ok,
-        contact_vertices=vertices,
+        contact_points=points,
         seconds=time.perf_counter() - t0,
     )
     use = ok & (delta > 0)
@@ -748,6 +751,7 @@ def run_contact_region_study(
     friction: float = 0.5,
     max_step: float = 0.002,
     device: str | None = "cpu",
+    contact_subdivisions: int = 1,
     log=print,
 ) -> dict:
     """Figs 2.5, 2.7, 2.8 on the simulated sensor; writes PNGs and ``contact_regions.json`` to ``out_dir``.
@@ -759,17 +763,25 @@ def run_contact_region_study(
         sweep_states: gas states (``{"gauge_pressure": Pa, "closed": bool}``) of the sweeps.
         sweep_depths: increasing travels beyond contact [m].
         device: Warp device of the FEM solves and the camera ("cpu", "cuda", ...).
+        contact_subdivisions: FEM contact points on the n-subdivision of every surface triangle (1: the
+            vertices; ``SolverOptions.contact_subdivisions``): indenters narrower than the mesh spacing
+            then touch the triangles between the vertices.
     """
     from pathlib import Path
 
     from defgraspnets.tactile import study_plots
     from defgraspnets.tactile.indenters import make_indenter
 
+    fem.SolverOptions(contact_subdivisions=contact_subdivisions)  # a bad value is named before any solve
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     membrane = _membranes(layers)
     t0 = time.perf_counter()
     report = {"obstacles": [], "area_sweeps": [], "mesh_spacing": {}}
+    report["contact_subdivisions"] = contact_subdivisions
+    study_sim = partial(
+        make_study_simulator, friction=friction, device=device, contact_subdivisions=contact_subdivisions
+    )
 
     o_state = _states([obstacle_state])[0]
     sensor = membrane(obstacle_cap_divisions)
@@ -778,7 +790,7 @@ def run_contact_region_study(
     for name, spec in obstacles.items():
         spec = dict(spec)
         indenter = make_indenter(spec.pop("kind"), **spec)
-        sim = make_study_simulator(sensor, indenter, o_state, friction=friction, device=device)
+        sim = study_sim(sensor, indenter, o_state)
         t = time.perf_counter()
         r = contact_region_experiment(sim, obstacle_depth, classification, contact_tolerance, max_step)
         results.append(r)
@@ -799,16 +811,14 @@ def run_contact_region_study(
         spacing = mesh_spacing(sensor)
         report["mesh_spacing"][str(cap)] = spacing
         for state in _states(sweep_states):
-            sim = make_study_simulator(
-                sensor, SphereIndenter(radius=0.5 * diameter), state, friction=friction, device=device
-            )
+            sim = study_sim(sensor, SphereIndenter(radius=0.5 * diameter), state)
             s = area_sweep(
                 sim, sweep_depths, classification, contact_tolerance, max_step, state.label, state.closed
             )
             sweeps.append(s)
             entry = to_jsonable(s)
             entry.update(
-                cap_divisions=cap, mesh_spacing=spacing, under_resolved=bool(s.contact_vertices.max() <= 1)
+                cap_divisions=cap, mesh_spacing=spacing, under_resolved=bool(s.contact_points.max() <= 1)
             )
             report["area_sweeps"].append(entry)
             log(
@@ -855,10 +865,12 @@ def run_force_model_study(
     friction: float = 0.5,
     max_step: float = 0.002,
     device: str | None = "cpu",
+    contact_subdivisions: int = 1,
     log=print,
 ) -> dict:
     """Figs 2.9-2.11 and Table 2.1 on the simulated sensor; writes PNGs and ``force_models.json``
-    (FEM solves and camera on the Warp ``device``).
+    (FEM solves and camera on the Warp ``device``; ``contact_subdivisions`` as in
+    :func:`run_contact_region_study`).
 
     ``matching_states`` index ``states`` (closed ones, inside the PV range of the polynomial); the desired
     forces at a state are ``desired_force_fractions`` of the largest force its characterization reached.
@@ -867,6 +879,7 @@ def run_force_model_study(
 
     from defgraspnets.tactile import study_plots
 
+    fem.SolverOptions(contact_subdivisions=contact_subdivisions)  # a bad value is named before any solve
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     membrane = _membranes(layers)
@@ -885,21 +898,33 @@ def run_force_model_study(
     if fractions.size < 1 or np.any(fractions <= 0) or np.any(fractions >= 1):
         raise ValueError(f"desired_force_fractions must lie in (0, 1), got {fractions.tolist()}")
     t0 = time.perf_counter()
-    report = {"sweeps": [], "polynomials": {}, "force_matching": [], "table_2_1": {}, "mesh_spacing": {}}
+    report = {
+        "sweeps": [],
+        "polynomials": {},
+        "force_matching": [],
+        "table_2_1": {},
+        "mesh_spacing": {},
+        "contact_subdivisions": contact_subdivisions,
+    }
     sweeps, sims = [], {}
     for diameter, cap in pairs:
         sensor = membrane(cap)
         report["mesh_spacing"][str(cap)] = mesh_spacing(sensor)
         for k, state in enumerate(gas):
             sim = make_study_simulator(
-                sensor, SphereIndenter(radius=0.5 * diameter), state, friction=friction, device=device
+                sensor,
+                SphereIndenter(radius=0.5 * diameter),
+                state,
+                friction=friction,
+                device=device,
+                contact_subdivisions=contact_subdivisions,
             )
             s = force_sweep(sim, depths, max_step, state.label, state.closed)
             sweeps.append(s)
             if diameter == float(matching_diameter) and k in [int(i) for i in matching_states]:
                 sims[k] = (sim, s)
             entry = to_jsonable(s)
-            entry.update(cap_divisions=cap, under_resolved=bool(s.contact_vertices.max() <= 1))
+            entry.update(cap_divisions=cap, under_resolved=bool(s.contact_points.max() <= 1))
             report["sweeps"].append(entry)
             slope = s.linear["slope"] if s.linear else float("nan")
             log(

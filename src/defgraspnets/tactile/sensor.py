@@ -412,7 +412,7 @@ class MembraneSimulator:
         """
         indenter = self.indenter if indenter is None else indenter
         body = indenter.with_pose(indentation.pose)
-        x = body.pose.inverse_apply(self._outer_contact_points())
+        x = body.pose.inverse_apply(self.outer_contact_points())
         d = np.asarray(indentation.direction)
         d_local = body.pose.rotation.inv().apply(d)
 
@@ -448,12 +448,13 @@ class MembraneSimulator:
             lo, hi = (inner[k - 1] if k else lo), (inner[k] if k < len(inner) else hi)
         return 0.5 * (lo + hi)
 
-    def _outer_contact_points(self) -> np.ndarray:
-        """(P_o, 3) the inflated membrane's contact points on its outer surface: the outer vertices, and with
-        sub-vertex contact (``contact_subdivisions`` > 1) the solver's points on the outer triangles too, so
-        that the onset of an indentation is where the indenter first touches a contact point (a small
-        indenter landing between the vertices touches the triangle's points first)."""
-        positions = self.inflated.positions[0]
+    def outer_contact_points(self, positions: np.ndarray | None = None) -> np.ndarray:
+        """(P_o, 3) the membrane's contact points on its outer surface at vertex ``positions`` (V, 3) [m]
+        (default: the inflated state): the outer vertices, and with sub-vertex contact
+        (``contact_subdivisions`` > 1) the solver's points on the outer triangles too, so that the onset of
+        an indentation is where the indenter first touches a contact point (a small indenter landing
+        between the vertices touches the triangle's points first)."""
+        positions = self.inflated.positions[0] if positions is None else np.asarray(positions)
         solver = self.solver
         if solver.options.contact_subdivisions == 1:
             return positions[self.sensor.outer_vertices]
