@@ -1,5 +1,7 @@
 """Self-contact of the object's surface (``SolverOptions.self_contact``, ``fem/self_contact.py``)."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import warp as wp
@@ -244,3 +246,50 @@ def test_a_pressed_block_passes_through_the_other_without_and_rests_on_it_with_s
     p = pushed[2] / (SIZE[0] * SIZE[1])
     tolerance = p * h / (1000.0 * E) + 1e-2 * h / 2
     assert 0 < pen.max() < 3 * tolerance
+
+
+def test_the_data_path_allows_the_penalty_depth_and_still_fails_a_pass_through():
+    """With self-contact the data path's self-intersection check (STATUS_SELF_INTERSECTING) allows surface
+    vertices within the pairs' depth cap of another part of the surface (held there by the penalty), and
+    still fails an object whose parts have passed through each other; without it (depth 0) both fail."""
+    from types import SimpleNamespace
+
+    from omegaconf import OmegaConf
+
+    from defgraspnets.grasp import datagen
+    from defgraspnets.grasp.squeeze import squeeze_solver_options
+
+    b = fem.TetMesh.box(size=(1.0, 1.0, 1.0), divisions=(2, 2, 2))
+    n = b.num_vertices
+    two = fem.TetMesh(np.vstack([b.points, b.points + [2.0, 0.0, 0.0]]), np.vstack([b.tets, b.tets + n]))
+    depth = sk.self_contact_depth(two)
+    assert depth == pytest.approx(sk.SELF_CONTACT_DEPTH * 0.5)
+    shallow, through = np.zeros((2 * n, 3)), np.zeros((2 * n, 3))
+    shallow[n:] -= [1.0 + 0.4 * depth, 0.13, 0.07]  # pressed 0.4 of the cap into the first box
+    through[n:] -= [1.7, 0.13, 0.07]
+    assert two.surface_vertices_inside(two.points + shallow).size > 0
+    assert two.surface_vertices_inside(two.points + shallow, depth=depth).size == 0
+    assert two.surface_vertices_inside(two.points + through, depth=depth).size > 4
+
+    def eq(displacements):
+        u = np.stack(displacements)
+        return SimpleNamespace(
+            mesh=two, converged=np.ones(len(u), dtype=bool), status=np.zeros(len(u), dtype=np.int32),
+            inverted_tets=np.zeros(len(u), dtype=int), positions=two.points[None] + u, displacement=u,
+            von_mises=np.zeros((len(u), 2 * n)), dof_force={"grip": np.ones(len(u))},
+            travel={"grip": np.ones(len(u))},
+        )  # fmt: skip
+
+    for options, expected in ((None, 7), (squeeze_solver_options(self_contact=1.0), 0)):
+        ramps = SimpleNamespace(mesh=two, options=options)
+        out = datagen._empty_ramps(2, 1, 2 * n)
+        rows = np.array([0, 1])
+        states = eq([shallow, through])
+        datagen._record_steps(out, rows, np.array([0, 0]), states, True, 0, datagen._contact_depth(ramps))
+        assert out["status"].tolist() == [expected, datagen.STATUS_SELF_INTERSECTING]
+    # the datagen key: null keeps the squeeze default (off); a bad value names the key
+    config = Path(__file__).resolve().parents[1] / "configs/datagen/grasps.yaml"
+    assert OmegaConf.load(config).self_contact is None
+    assert squeeze_solver_options(self_contact=None).self_contact == 0.0
+    with pytest.raises(ValueError, match="self_contact"):
+        squeeze_solver_options(self_contact=-1.0)
