@@ -58,6 +58,18 @@ def test_self_contact_option_is_checked():
     solver = fem.QuasiStaticSolver(fem.TetMesh.box(divisions=(1, 1, 1)), [], device="cpu")
     with pytest.raises(ValueError, match="self_contact"):
         solver.self_contact_forces()
+    # the iterative and banded solvers lack the couplings outside the block pattern: refused; "auto" picks an
+    # exact one
+    box = fem.TetMesh.box(divisions=(2, 2, 2))
+    for name in ("amg", "cg", "banded", "dense_banded"):
+        with pytest.raises(ValueError, match="self_contact needs linear_solver"):
+            fem.QuasiStaticSolver(
+                box, [], device="cpu", options=fem.SolverOptions(linear_solver=name, self_contact=1)
+            )
+    big = fem.TetMesh.box(divisions=(8, 8, 8))  # "auto" would pick AMG on the CPU
+    assert fem.QuasiStaticSolver(big, [], device="cpu").linear_solver == "amg"
+    on = fem.QuasiStaticSolver(big, [], device="cpu", options=fem.SolverOptions(self_contact=1.0))
+    assert on.linear_solver == "direct"
 
 
 def test_exclusion_is_along_the_surface():

@@ -28,10 +28,11 @@ w_1 n, w_2 n) and k_g = d^2E_n/dpen^2 (PSD; the distance's curvature dropped, as
 and the triangle it touches are no mesh neighbours, so of these blocks the solver's fixed block pattern
 holds only (v, v) and the triangle's (i, j) (tet edges); the (v, i) couplings are written to
 ``SelfContact.coupling`` and the "direct" and "dense" linear solvers add them to the matrix they factor
-(``BatchedSystem.coupling``): the whole Gauss-Newton Hessian. The banded (block-tridiagonal), CG and AMG
-solvers use the pattern's blocks alone (still PSD, so Newton's direction still descends and the energy line
-search keeps every step safe), and converge linearly where self-contact dominates (measured on two pressed
-blocks: no convergence in 40 Newton iterations without the couplings, 46 over a whole press with them).
+(``BatchedSystem.coupling``): the whole Gauss-Newton Hessian. With the pattern's blocks alone (still PSD,
+so Newton's direction still descends) Newton crawls: on two pressed blocks the banded and AMG solvers
+needed 4400 iterations for the first contact increment, not converged, against 46 for the whole press with
+the couplings; so self-contact is refused with the banded, CG and AMG solvers (the banded solver's
+block-tridiagonal structure cannot hold couplings between distant vertices).
 
 Candidates. Once per Newton iteration (at assembly, from the deformed state) each surface vertex gets up to
 ``SELF_CONTACT_CANDIDATES`` nearest triangles, kept for that iteration's line search, so the energies

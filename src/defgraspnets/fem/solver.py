@@ -58,6 +58,11 @@ log = logging.getLogger(__name__)
 LINEAR_SOLVERS = ("auto", "cg", "amg", "direct", "dense", "banded", "dense_banded")
 # the linear solvers that factor each problem's Hessian (exact; factors can be kept for chord Newton)
 FACTORIZING_SOLVERS = ("direct", "dense", "banded", "dense_banded")
+# the linear solvers that add self-contact's vertex-triangle couplings (outside the block pattern) to their
+# matrix; the others would see only the pattern's blocks, with which Newton does not converge (two pressed
+# blocks: 4400 iterations for the first contact increment with "amg" or "banded", 46 for the whole press
+# with "direct" or "dense")
+SELF_CONTACT_SOLVERS = ("direct", "dense")
 # Levenberg-Marquardt damping of a rejected exact-Hessian step, in units of E h on the vertex diagonal:
 # it starts at LM_START, x10 per rejection up to LM_MAX, /3 per accepted full step, dropped below LM_MIN
 LM_START, LM_MAX, LM_MIN = 1e-3, 0.1, 1e-6
@@ -352,8 +357,10 @@ class SolverOptions:
             surface vertex is pushed out of the nearest facing triangle of the object's own surface that it
             is not near at rest, with the rigid contact's penalty law at s times its stiffness (s = 1: the
             same pressure stiffness kappa E / h and penetration tolerance). 0 (default): off, bit for bit as
-            before. Pairs are found per Newton iteration with one Warp BVH per problem; only the Hessian
-            blocks the FEM pattern holds are assembled (PSD; Newton converges linearly where it dominates).
+            before. Pairs are found per Newton iteration with one Warp BVH per problem. Its Hessian couples
+            vertices outside the FEM block pattern: needs linear_solver "direct" or "dense" ("auto" picks
+            "direct" where it would pick an iterative solver), which add those couplings to the matrix they
+            factor; the others would not converge (``SELF_CONTACT_SOLVERS``).
     """
 
     contact_stiffness: float = 1000.0
@@ -779,6 +786,14 @@ class QuasiStaticSolver:
         if self.linear_solver == "auto":
             dense = 3 * R <= DENSE_AUTO_MAX_UNKNOWNS["cuda" if dev.is_cuda else "cpu"]
             self.linear_solver = "dense" if dense else ("cg" if dev.is_cuda else "amg")
+            if self.options.self_contact > 0 and not dense:
+                self.linear_solver = "direct"  # the iterative solvers lack the self-contact couplings
+        if self.options.self_contact > 0 and self.linear_solver not in SELF_CONTACT_SOLVERS:
+            raise ValueError(
+                f"SolverOptions.self_contact needs linear_solver 'direct', 'dense' or 'auto', got "
+                f"{self.linear_solver!r}: self-contact couples vertices outside the FEM block pattern, which "
+                "only those factorizations hold (without the couplings Newton does not converge)"
+            )
 
         # ---------------- mesh data
         self._rest = wp.array(mesh.points, dtype=wp.vec3d, device=dev)
@@ -858,8 +873,8 @@ class QuasiStaticSolver:
             if self.options.self_contact > 0
             else None
         )
-        if self._self_contact is not None and self.linear_solver in ("direct", "dense"):
-            # the exact solvers factor the vertex-triangle couplings too (the whole Gauss-Newton Hessian)
+        if self._self_contact is not None:
+            # the factorizing solvers add the vertex-triangle couplings (the whole Gauss-Newton Hessian)
             self.system.coupling = self._self_contact.coupling
 
         # ---------------- rigid bodies
