@@ -5,21 +5,23 @@ without self-contact its surface parts pass through each other freely. This modu
 every surface vertex v and the surface of the same object near it, with the law of the rigid contact
 (``contact.py``):
 
-    E_s = E_n(pen),   pen = |x_v - c| if (x_v - c) . m < 0 else 0,
+    E_s = E_n(pen),   pen = |x_v - c| if c is inside f and (x_v - c) . n_f < 0 (and pen < cap) else 0,
     k_v = s kappa E (A_v / 2) / h,   delta = zeta h,
 
-where c = sum_i w_i x_i is the closest point to x_v of the nearest candidate triangle f = (x_0, x_1, x_2)
-(deformed; w its barycentric weights), m the outward pseudo-normal of the closest feature (the face normal
-inside the triangle, the sum of the two faces' normals on an edge, the angle-weighted vertex normal at a
-corner: the sign of the distance to a closed surface, Baerentzen and Aanaes 2005), E_n the C2 penalty of
-contact.py with the onset width delta, A_v the vertex's lumped surface area, h the solver's penalty length
-(median surface edge) and s = ``SolverOptions.self_contact`` (1: the rigid contact's stiffness). A contact
-interface is penalized from both sides (each side's vertices against the other side's triangles), hence
-A_v / 2: an interface pressure p then penetrates about (p / E) h / (s kappa) + delta / 2, the rigid
-contact's tolerance for s = 1.
+where f = (x_0, x_1, x_2) is the candidate triangle (deformed) that v has penetrated least deeply, c =
+sum_i w_i x_i the closest point of f to x_v (w its barycentric weights), n_f its outward unit normal, E_n the
+C2 penalty of contact.py with the onset width delta, A_v the vertex's lumped surface area, h the solver's
+penalty length (median surface edge) and s = ``SolverOptions.self_contact`` (1: the rigid contact's
+stiffness). A triangle counts only where x_v projects into its interior (all w_i > 0; "point in prism"),
+so c - x_v is along n_f and pen is the depth below its plane: a vertex beside another part's edge or corner
+is never taken for one behind it (a sign from pseudo-normals, tried first, switched from 0 to millimetres
+under infinitesimal moves there, where the true nearest surface point is the vertex's own, excluded,
+neighbourhood, and stalled Newton's line search). A contact interface is penalized from both sides (each
+side's vertices against the other side's triangles), hence A_v / 2: an interface pressure p then
+penetrates about (p / E) h / (s kappa) + delta / 2, the rigid contact's tolerance for s = 1.
 
 Gradient (exact: the closest point is stationary, so only the distance's explicit dependence counts): with
-the unit push-out direction n = -(x_v - c) / |x_v - c|,
+the unit push-out direction n = -(x_v - c) / |x_v - c| (= n_f),
 
     dpen/dx_v = -n,   dpen/dx_i = w_i n,   force on v: f_n n, on the triangle's vertices: -w_i f_n n,
 
@@ -36,8 +38,8 @@ block-tridiagonal structure cannot hold couplings between distant vertices).
 
 Candidates. Once per Newton iteration (at assembly, from the deformed state) each surface vertex gets up to
 ``SELF_CONTACT_CANDIDATES`` nearest triangles, kept for that iteration's line search, so the energies
-compared there and the gradient belong to one function (the penalty acts on the nearest of them at every
-state). They are the triangles
+compared there and the gradient belong to one function (the penalty acts on the one penetrated least deeply at
+every state). They are the triangles
 
 - within r = ``SELF_CONTACT_RADIUS`` h of x_v (one ``wp.Mesh`` BVH per problem over the surface
   triangles, refit from the deformed positions each iteration, queried with the box of half width r: O(S
@@ -47,15 +49,14 @@ state). They are the triangles
   around v bends but does not touch itself; parts near in space but far apart along the surface, two blocks
   of one mesh, a slot's walls, still contact; a fold sharper than that radius is not resolved).
 
-A vertex found deeper than ``SELF_CONTACT_DEPTH`` h behind its nearest candidate is not paired at all
+Depth cap: a vertex deeper than ``SELF_CONTACT_DEPTH`` h behind a triangle is not held by it
 (:func:`self_contact_depth`): it lies inside a wall of the object, not in contact with it (the outer surface
 of a thin wall against its own inner surface). This is the tunnelling caveat: a vertex carried deeper than
 that in one Newton step, or pressed that deep, is let through (the squeeze path's step cap, 1 % of the
-object's size, is below it on the measured meshes; a converged state's penetrations are ~1e-3-1e-2 h). The
-signed gap holds a vertex back on the outer side of the other surface after it has crossed the plane (an
-unsigned gap with an offset would pull it through as soon as it crossed); the sign can still switch without
-the distance going through zero where the nearest feature changes between candidates, a small jump of the
-energy that the line search tolerates.
+object's size, is below it on the measured meshes; a converged state's penetrations are ~1e-3 h). Where a
+vertex passes from the prism of one triangle into that of the next, the penalty is continuous on flat and
+convex parts of the other surface; at a concave crease it can drop to zero in the wedge between the two
+prisms (a jump bounded by the penetration, which the line search tolerates).
 """
 
 from __future__ import annotations
@@ -128,12 +129,11 @@ class SelfContactArrays:
     area: wp.array(dtype=wp.float64)  # (S,) lumped surface area A_v [m^2]
     excluded_start: wp.array(dtype=wp.int32)  # (S + 1,) CSR rows of the excluded triangles
     excluded: wp.array(dtype=wp.int32)  # sorted triangle indices per row
-    adjacent: wp.array(dtype=wp.vec3i)  # (F,) triangle across the edge opposite corner k (-1: none)
-    normals: wp.array(dtype=wp.vec3d)  # (B N,) area-weighted vertex normals (unnormalized) at the pairing
     pair: wp.array(dtype=wp.int32)  # (B S K,) candidate triangles of each surface vertex, -1: none
     pair_distance: wp.array(dtype=wp.float64)  # (B S K,) their distances at the pairing (scratch)
     candidates: int  # K
     size: f64  # penalty length h [m]
+    depth: f64  # depth cap [m]
     num_vertices: int
 
 
@@ -168,50 +168,19 @@ def surface_points_kernel(positions: wp.array(dtype=wp.vec3d), points: wp.array(
     points[i] = wp.vec3(float(x[0]), float(x[1]), float(x[2]))
 
 
-@wp.kernel
-def vertex_normal_kernel(
-    positions: wp.array(dtype=wp.vec3d),
-    sc: SelfContactArrays,
-    normals: wp.array(dtype=wp.vec3d),
-):
-    """normals[b N + v] += the unit normal of each surface triangle at v times its angle there (angle-weighted
-    pseudo-normals: the sign of the distance to a vertex of a closed surface, Baerentzen and Aanaes 2005)."""
-    b, f = wp.tid()
-    ids = sc.faces[f]
-    o = b * sc.num_vertices
-    x0 = positions[o + ids[0]]
-    x1 = positions[o + ids[1]]
-    x2 = positions[o + ids[2]]
-    n = face_normal(x0, x1, x2)
-    for i in range(3):
-        p = x0
-        q = x1
-        r = x2
-        if i == 1:
-            p = x1
-            q = x2
-            r = x0
-        elif i == 2:
-            p = x2
-            q = x0
-            r = x1
-        c = wp.dot(wp.normalize(q - p), wp.normalize(r - p))
-        wp.atomic_add(normals, o + ids[i], wp.acos(wp.clamp(c, f64(-1.0), f64(1.0))) * n)
-
-
 @wp.func
 def nearest_penetration(sc: SelfContactArrays, positions: wp.array(dtype=wp.vec3d), o: int, b: int, s: int):
-    """The nearest of surface vertex s's candidate triangles f (-1: none; positions of the state at offset o,
-    of problem b), the vertex's penetration pen >= 0 behind the surface there, the push-out direction n
-    (unit) and the closest point's weights w. Behind: (x - c) . m < 0 with m the pseudo-normal of the
-    closest feature: the face normal inside the triangle, the sum of the two faces' normals on an edge, the
-    angle-weighted vertex normal (of the pairing state) at a corner."""
+    """The candidate triangle f of surface vertex s (positions of the state at offset o, of problem b) that
+    the vertex has penetrated least deeply, -1 if none: x_v projects into its interior (all closest-point
+    weights > 0) and lies behind it, (x_v - c) . n_f < 0, less than the depth cap deep. Returns f, the
+    penetration pen = |x_v - c| (0 if none), the push-out direction n = n_f and the weights w."""
     zero = f64(0.0)
     K = sc.candidates
     first = (b * sc.surface.shape[0] + s) * K
     x = positions[o + sc.surface[s]]
     f = int(-1)  # noqa: UP018
-    best = f64(1.0e30)
+    pen = zero
+    n = wp.vec3d()
     w = wp.vec3d()
     for k in range(K):
         g = sc.pair[first + k]
@@ -221,41 +190,17 @@ def nearest_penetration(sc: SelfContactArrays, positions: wp.array(dtype=wp.vec3
             x1 = positions[o + ids[1]]
             x2 = positions[o + ids[2]]
             wg = closest_point_weights(x, x0, x1, x2)
-            d = wp.length(x - (wg[0] * x0 + wg[1] * x1 + wg[2] * x2))
-            if d < best:
-                best = d
-                f = g
-                w = wg
-    pen = zero
-    n = wp.vec3d()
-    if f < 0:
-        return f, pen, n, w
-    ids = sc.faces[f]
-    x0 = positions[o + ids[0]]
-    x1 = positions[o + ids[1]]
-    x2 = positions[o + ids[2]]
-    r = x - (w[0] * x0 + w[1] * x1 + w[2] * x2)
-    nf = face_normal(x0, x1, x2)
-    m = nf
-    corner = int(-1)  # noqa: UP018
-    edge = int(-1)  # noqa: UP018
-    for k in range(3):
-        if w[k] == f64(1.0):
-            corner = k
-        if w[k] == zero:
-            edge = k
-    if corner >= 0:
-        m = sc.normals[b * sc.num_vertices + ids[corner]]
-    elif edge >= 0:
-        g = sc.adjacent[f][edge]
-        if g >= 0:
-            jd = sc.faces[g]
-            m = nf + face_normal(positions[o + jd[0]], positions[o + jd[1]], positions[o + jd[2]])
-    n = nf
-    if wp.dot(r, m) < zero:
-        pen = best
-        if best > f64(1e-15):
-            n = -r / best
+            if wg[0] > zero and wg[1] > zero and wg[2] > zero:
+                nf = face_normal(x0, x1, x2)
+                r = x - (wg[0] * x0 + wg[1] * x1 + wg[2] * x2)
+                d = wp.length(r)
+                if wp.dot(r, nf) < zero and d < sc.depth and (f < 0 or d < pen):
+                    f = g
+                    pen = d
+                    n = nf
+                    if d > f64(1e-15):
+                        n = -r / d
+                    w = wg
     return f, pen, n, w
 
 
@@ -264,11 +209,9 @@ def pair_kernel(
     positions: wp.array(dtype=wp.vec3d),
     meshes: wp.array(dtype=wp.uint64),
     radius: f64,
-    depth: f64,
     sc: SelfContactArrays,
 ):
-    """The K nearest non-excluded triangles within ``radius`` of each surface vertex (-1: none); none if
-    the vertex lies deeper than ``depth`` behind the nearest (through a wall, not in contact)."""
+    """The K nearest non-excluded triangles within ``radius`` of each surface vertex (-1: none)."""
     b, s = wp.tid()
     o = b * sc.num_vertices
     x = positions[o + sc.surface[s]]
@@ -305,11 +248,6 @@ def pair_kernel(
                 if slot >= 0:
                     sc.pair[first + slot] = f
                     sc.pair_distance[first + slot] = d
-    if count > 0:
-        f_near, pen, n, w = nearest_penetration(sc, positions, o, b, s)
-        if pen >= depth:
-            for k in range(K):
-                sc.pair[first + k] = -1
 
 
 @wp.kernel
@@ -420,21 +358,6 @@ def self_contact_depth(mesh) -> float:
     return SELF_CONTACT_DEPTH * mesh.median_surface_edge_length
 
 
-def adjacent_triangles(faces: np.ndarray) -> np.ndarray:
-    """(F, 3) the triangle sharing the edge opposite corner k of each triangle (-1 on an open edge)."""
-    F = len(faces)
-    edges = np.stack([faces[:, [1, 2]], faces[:, [2, 0]], faces[:, [0, 1]]], axis=1)  # (F, 3, 2)
-    key = np.sort(edges, axis=2).reshape(-1, 2)
-    _, inverse = np.unique(key, axis=0, return_inverse=True)
-    inverse = inverse.ravel()
-    out = np.full(3 * F, -1, dtype=np.int64)
-    order = np.argsort(inverse, kind="stable")
-    same = inverse[order[1:]] == inverse[order[:-1]]
-    a, b = order[:-1][same], order[1:][same]
-    out[a], out[b] = b // 3, a // 3
-    return out.reshape(F, 3).astype(np.int32)
-
-
 def excluded_triangles(mesh, radius: float, chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:
     """CSR (start (S + 1,), sorted triangle indices) of the surface triangles each surface vertex v
     (``mesh.surface_vertices`` order) never pairs with: those incident to v, to its surface 1-ring, or to
@@ -494,12 +417,11 @@ class SelfContact:
         sc.area = wp.array(mesh.vertex_areas[surface], dtype=wp.float64, device=dev)
         sc.excluded_start = wp.array(start, dtype=wp.int32, device=dev)
         sc.excluded = wp.array(excluded, dtype=wp.int32, device=dev)
-        sc.adjacent = wp.array(adjacent_triangles(faces), dtype=wp.vec3i, device=dev)
-        sc.normals = self._normals = wp.zeros(B * N, dtype=wp.vec3d, device=dev)
         sc.candidates = K = SELF_CONTACT_CANDIDATES
         sc.pair = wp.full(B * S * K, -1, dtype=wp.int32, device=dev)
         sc.pair_distance = wp.zeros(B * S * K, dtype=wp.float64, device=dev)
         sc.size = float(size)
+        sc.depth = float(self.depth)
         sc.num_vertices = N
         self.arrays = sc
         self._points = wp.zeros(B * N, dtype=wp.vec3, device=dev)
@@ -523,14 +445,10 @@ class SelfContact:
         )
         for m in self._meshes:
             m.refit()
-        self._normals.zero_()
-        wp.launch(
-            vertex_normal_kernel, dim=(B, self.num_faces), inputs=[positions, sc, self._normals], device=dev
-        )
         wp.launch(
             pair_kernel,
             dim=(B, self.num_surface),
-            inputs=[positions, self._mesh_ids, float(self.radius), float(self.depth), sc],
+            inputs=[positions, self._mesh_ids, float(self.radius), sc],
             device=dev,
         )
 
