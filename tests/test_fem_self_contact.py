@@ -305,3 +305,14 @@ def test_the_data_path_allows_the_penalty_depth_and_still_fails_a_pass_through()
     assert squeeze_solver_options(self_contact=None).self_contact == 0.0
     with pytest.raises(ValueError, match="self_contact"):
         squeeze_solver_options(self_contact=-1.0)
+
+
+@pytest.mark.parametrize("name", ["annulus_ro45_ri35_h20_ftetwild.vtu", "cuboid_60x40x20.vtu"])
+def test_no_self_contact_at_rest_on_data_path_meshes(name):
+    """At rest nothing touches itself: an fTetWild ring (a 10 mm wall) and a slab of the data path have no
+    penetrating pair (no false contact of a vertex with its own surface or across a wall)."""
+    mesh = fem.TetMesh.load(Path(__file__).parent / "data" / name)
+    solver = fem.QuasiStaticSolver(mesh, [], device="cpu", options=fem.SolverOptions(self_contact=1.0))
+    force, pen = solver.self_contact_forces()
+    assert pen.shape == (1, len(mesh.surface_vertices))
+    assert not pen.any() and not force.any()

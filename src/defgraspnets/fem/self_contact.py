@@ -5,7 +5,7 @@ without self-contact its surface parts pass through each other freely. This modu
 every surface vertex v and the surface of the same object near it, with the law of the rigid contact
 (``contact.py``):
 
-    E_s = E_n(pen),   pen = |x_v - c| if c is inside f and (x_v - c) . n_f < 0 (and pen < cap) else 0,
+    E_s = E_n(pen),   pen = |x_v - c| if c is inside f and (x_v - c) . n_f < 0 else 0,
     k_v = s kappa E (A_v / 2) / h,   delta = zeta h,
 
 where f = (x_0, x_1, x_2) is the candidate triangle (deformed) that v has penetrated least deeply, c =
@@ -49,11 +49,14 @@ every state). They are the triangles
   around v bends but does not touch itself; parts near in space but far apart along the surface, two blocks
   of one mesh, a slot's walls, still contact; a fold sharper than that radius is not resolved).
 
-Depth cap: a vertex deeper than ``SELF_CONTACT_DEPTH`` h behind a triangle is not held by it
-(:func:`self_contact_depth`): it lies inside a wall of the object, not in contact with it (the outer surface
-of a thin wall against its own inner surface). This is the tunnelling caveat: a vertex carried deeper than
-that in one Newton step, or pressed that deep, is let through (the squeeze path's step cap, 1 % of the
-object's size, is below it on the measured meshes; a converged state's penetrations are ~1e-3 h). Where a
+Depth cap: a triangle that a vertex lies ``SELF_CONTACT_DEPTH`` h or deeper behind at the pairing is no
+candidate of it (:func:`self_contact_depth`): the vertex lies inside a wall of the object, not in contact
+with it (the outer surface of a thin wall against its own inner surface). Within a Newton iteration a paired
+vertex is held however deep it goes (no cap inside the line search: capping the energy there made it drop
+to zero at the cap, and a vertex just beyond it that the Newton step moved back jumped to the full penalty:
+measured, the line search stalled). This is the tunnelling caveat: a vertex carried deeper than the cap in
+one Newton step before it was paired, or pressed that deep, is let through (the squeeze path's step cap,
+1 % of the object's size, is below it on the measured meshes; converged penetrations are ~1e-2 h). Where a
 vertex passes from the prism of one triangle into that of the next, the penalty is continuous on flat and
 convex parts of the other surface; at a concave crease it can drop to zero in the wedge between the two
 prisms (a jump bounded by the penetration, which the line search tolerates).
@@ -172,7 +175,7 @@ def surface_points_kernel(positions: wp.array(dtype=wp.vec3d), points: wp.array(
 def nearest_penetration(sc: SelfContactArrays, positions: wp.array(dtype=wp.vec3d), o: int, b: int, s: int):
     """The candidate triangle f of surface vertex s (positions of the state at offset o, of problem b) that
     the vertex has penetrated least deeply, -1 if none: x_v projects into its interior (all closest-point
-    weights > 0) and lies behind it, (x_v - c) . n_f < 0, less than the depth cap deep. Returns f, the
+    weights > 0) and lies behind it, (x_v - c) . n_f < 0. Returns f, the
     penetration pen = |x_v - c| (0 if none), the push-out direction n = n_f and the weights w."""
     zero = f64(0.0)
     K = sc.candidates
@@ -194,7 +197,7 @@ def nearest_penetration(sc: SelfContactArrays, positions: wp.array(dtype=wp.vec3
                 nf = face_normal(x0, x1, x2)
                 r = x - (wg[0] * x0 + wg[1] * x1 + wg[2] * x2)
                 d = wp.length(r)
-                if wp.dot(r, nf) < zero and d < sc.depth and (f < 0 or d < pen):
+                if wp.dot(r, nf) < zero and (f < 0 or d < pen):
                     f = g
                     pen = d
                     n = nf
@@ -232,8 +235,12 @@ def pair_kernel(
             x1 = positions[o + ids[1]]
             x2 = positions[o + ids[2]]
             w = closest_point_weights(x, x0, x1, x2)
-            d = wp.length(x - (w[0] * x0 + w[1] * x1 + w[2] * x2))
-            if d < radius:
+            r_vec = x - (w[0] * x0 + w[1] * x1 + w[2] * x2)
+            d = wp.length(r_vec)
+            inside = w[0] > f64(0.0) and w[1] > f64(0.0) and w[2] > f64(0.0)
+            # a vertex as deep as the cap behind a triangle is in a wall of the object: not paired with it
+            deep = inside and wp.dot(r_vec, face_normal(x0, x1, x2)) < f64(0.0) and d >= sc.depth
+            if d < radius and not deep:
                 slot = count
                 if count < K:
                     count += 1
