@@ -49,11 +49,9 @@ every state). They are the triangles
   around v bends but does not touch itself; parts near in space but far apart along the surface, two blocks
   of one mesh, a slot's walls, still contact; a fold sharper than that radius is not resolved).
 
-Depth cap: a triangle whose plane a vertex lies ``SELF_CONTACT_DEPTH`` h or deeper behind at the pairing
-(inside its prism or beside it) is no candidate of it (:func:`self_contact_depth`): the vertex lies inside
-a wall of the object, not in contact with it (the outer surface of a thin wall against its own inner
-surface), or has slipped that deep beside the triangle, where it would jump from no penalty to a deep one
-on entering the prism (measured: that stalled the line search). Within a Newton iteration a paired
+Depth cap: a triangle that a vertex lies ``SELF_CONTACT_DEPTH`` h or deeper behind at the pairing is no
+candidate of it (:func:`self_contact_depth`): the vertex lies inside a wall of the object, not in contact
+with it (the outer surface of a thin wall against its own inner surface). Within a Newton iteration a paired
 vertex is held however deep it goes (no cap inside the line search: capping the energy there made it drop
 to zero at the cap, and a vertex just beyond it that the Newton step moved back jumped to the full penalty:
 measured, the line search stalled). This is the tunnelling caveat: a vertex carried deeper than the cap in
@@ -239,10 +237,9 @@ def pair_kernel(
             w = closest_point_weights(x, x0, x1, x2)
             r_vec = x - (w[0] * x0 + w[1] * x1 + w[2] * x2)
             d = wp.length(r_vec)
-            # a vertex as deep as the cap behind a triangle's plane is in a wall of the object (or has passed
-            # beside the triangle into it): not paired with it, so it cannot enter the triangle's prism deep
-            # inside a line search (a jump of the penalty from zero that stalls it)
-            deep = wp.dot(r_vec, face_normal(x0, x1, x2)) <= -sc.depth
+            inside = w[0] > f64(0.0) and w[1] > f64(0.0) and w[2] > f64(0.0)
+            # a vertex as deep as the cap behind a triangle is in a wall of the object: not paired with it
+            deep = inside and wp.dot(r_vec, face_normal(x0, x1, x2)) < f64(0.0) and d >= sc.depth
             if d < radius and not deep:
                 slot = count
                 if count < K:
