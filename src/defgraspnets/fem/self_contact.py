@@ -75,7 +75,7 @@ f64 = wp.float64
 SELF_CONTACT_RADIUS = 0.5
 #: depth cap: a vertex found deeper than this behind a triangle is not paired with it, in units of h
 SELF_CONTACT_DEPTH = 0.25
-#: candidate triangles kept per surface vertex (the penalty acts on the nearest of them at every state)
+#: candidate triangles kept per surface vertex (the penalty acts on the one penetrated least deeply)
 SELF_CONTACT_CANDIDATES = 8
 #: rest radius of the surface around a vertex that it does not contact, in units of h
 SELF_CONTACT_EXCLUSION = 2.0
@@ -175,8 +175,8 @@ def surface_points_kernel(positions: wp.array(dtype=wp.vec3d), points: wp.array(
 def nearest_penetration(sc: SelfContactArrays, positions: wp.array(dtype=wp.vec3d), o: int, b: int, s: int):
     """The candidate triangle f of surface vertex s (positions of the state at offset o, of problem b) that
     the vertex has penetrated least deeply, -1 if none: x_v projects into its interior (all closest-point
-    weights > 0) and lies behind it, (x_v - c) . n_f < 0. Returns f, the
-    penetration pen = |x_v - c| (0 if none), the push-out direction n = n_f and the weights w."""
+    weights > 0) and lies behind it, (x_v - c) . n_f < 0. Returns f, the penetration pen = |x_v - c| (0 if
+    none), the push-out direction n = n_f and the weights w."""
     zero = f64(0.0)
     K = sc.candidates
     first = (b * sc.surface.shape[0] + s) * K
@@ -214,7 +214,8 @@ def pair_kernel(
     radius: f64,
     sc: SelfContactArrays,
 ):
-    """The K nearest non-excluded triangles within ``radius`` of each surface vertex (-1: none)."""
+    """The K nearest non-excluded triangles within ``radius`` of each surface vertex (-1: none), leaving out
+    those the vertex lies in the prism of and the depth cap or deeper behind (in a wall, not in contact)."""
     b, s = wp.tid()
     o = b * sc.num_vertices
     x = positions[o + sc.surface[s]]
