@@ -83,6 +83,7 @@ def main(cfg: DictConfig) -> None:
             force_maximum_snap=cfg.force_maximum_snap,
             stabilization_relax=cfg.stabilization_relax,
             stabilization_relax_decay=cfg.stabilization_relax_decay,
+            self_contact=cfg.self_contact,
         ),
         reject_inverted=cfg.reject_inverted,
         overwrite=cfg.overwrite,

@@ -18,7 +18,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from defgraspnets import fem
 from defgraspnets.grasp.datagen import resolve_object_mesh
-from defgraspnets.grasp.diagnostics import squeeze_state_geometry, travel_controlled_path
+from defgraspnets.grasp.diagnostics import (
+    self_intersection_summary,
+    squeeze_state_geometry,
+    travel_controlled_path,
+)
 from defgraspnets.grasp.sampler import sample_antipodal_grasps
 from defgraspnets.grasp.squeeze import (
     GRIP_DOF,
@@ -70,8 +74,11 @@ def main(cfg: DictConfig) -> None:
                 {name: f[0] for name, f in last.contact_normal_force.items()},
                 contact_threshold=1e-4 * r["force_reached"],
             )
+            # the solver rests at the last converged state (a failed increment is restored)
+            r["last"].update(self_intersection_summary(mesh, mesh.points + last.displacement[0], solver))
         print(f"grasp {g}: status {r['final_status']}, {r['force_reached']:.1f} N reached, "
-              f"{sum(r['newton'])} Newton iterations, {r['wall_s']:.1f} s", flush=True)  # fmt: skip
+              f"{sum(r['newton'])} Newton iterations, {r['wall_s']:.1f} s, "
+              f"{r.get('last', {}).get('inside')} surface vertices inside", flush=True)  # fmt: skip
         if int(cfg.travel_continue) > 0 and failed is not None and solved:
             reached = r["travel_mm"][-1] * 1e-3
             travels = list(np.linspace(0.0, reached, 21)[1:])

@@ -333,12 +333,15 @@ class TetMesh:
         mask[self.surface_vertices] = True
         return mask
 
-    def surface_vertices_inside(self, points, tolerance: float = 1e-6) -> np.ndarray:
+    def surface_vertices_inside(self, points, tolerance: float = 1e-6, depth: float = 0.0) -> np.ndarray:
         """Sorted indices of the surface vertices that lie strictly inside a tet they are no vertex of, at
-        the deformed ``points`` (N, 3): the object passes through itself there. The FEM has no self-contact,
-        so a collapsing hollow object (a thin ring squeezed flat) lets its walls pass through each other
-        with no resistance; such a state is no physical answer. ``tolerance``: barycentric margin, so a
-        vertex on another tet's face (flat faces pressed together, up to round-off) does not count."""
+        the deformed ``points`` (N, 3): the object passes through itself there. Without self-contact
+        (``SolverOptions.self_contact``) a collapsing hollow object (a thin ring squeezed flat) lets its walls
+        pass through each other with no resistance; such a state is no physical answer. ``tolerance``:
+        barycentric margin, so a vertex on another tet's face (flat faces pressed together, up to round-off)
+        does not count. ``depth`` [m] > 0: nor does a vertex within ``depth`` of a surface triangle it is no
+        vertex of (a self-contact penalty's penetration, which holds surface parts that touch within a small
+        depth of each other)."""
         x = np.asarray(points, dtype=np.float64)
         if x.shape != self.points.shape:
             raise ValueError(f"points must be {self.points.shape}, got {x.shape}")
@@ -362,7 +365,30 @@ class TetMesh:
             lam = np.linalg.solve(edges, (x[v] - corners[tm, 0])[..., None])[..., 0]
         bary = np.concatenate([1.0 - lam.sum(axis=1, keepdims=True), lam], axis=1)
         inside = np.all(bary > tolerance, axis=1)
-        return np.unique(v[inside])
+        found = np.unique(v[inside])
+        if depth > 0 and found.size:
+            found = found[self._surface_distance_beyond(x, found, float(depth))]
+        return found
+
+    def _surface_distance_beyond(self, x: np.ndarray, vertices: np.ndarray, depth: float) -> np.ndarray:
+        """(len(vertices),) bool: vertex v (at deformed ``x``) is farther than ``depth`` from every surface
+        triangle it is no vertex of."""
+        from scipy.spatial import cKDTree
+        from trimesh.triangles import closest_point
+
+        f = self.surface_faces
+        tri = x[f]
+        centre = tri.mean(axis=1)
+        reach = float(np.linalg.norm(tri - centre[:, None], axis=2).max()) + depth
+        hits = cKDTree(centre).query_ball_point(x[vertices], reach)
+        beyond = np.ones(len(vertices), dtype=bool)
+        for i, (v, cand) in enumerate(zip(vertices.tolist(), hits)):
+            cand = np.asarray(cand, dtype=np.int64)
+            cand = cand[~np.any(f[cand] == v, axis=1)]
+            if cand.size:
+                c = closest_point(tri[cand], np.repeat(x[v][None], len(cand), axis=0))
+                beyond[i] = np.linalg.norm(c - x[v], axis=1).min() > depth
+        return beyond
 
     def face_normals(self, points=None) -> np.ndarray:
         """(F, 3) area vectors / |.|: unit outward normals of the surface faces (at ``points`` if given)."""

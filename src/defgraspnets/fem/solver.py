@@ -47,6 +47,7 @@ from .material import MATERIAL_MODELS, Material
 from .mesh import TetMesh
 from .pressure import PressureLoad, PressureSurface
 from .results import Equilibrium, SolveStatus
+from .self_contact import SelfContact
 from .system import BatchedSystem, BlockPattern
 
 __all__ = ["SolverOptions", "QuasiStaticSolver"]
@@ -57,6 +58,11 @@ log = logging.getLogger(__name__)
 LINEAR_SOLVERS = ("auto", "cg", "amg", "direct", "dense", "banded", "dense_banded")
 # the linear solvers that factor each problem's Hessian (exact; factors can be kept for chord Newton)
 FACTORIZING_SOLVERS = ("direct", "dense", "banded", "dense_banded")
+# the linear solvers that add self-contact's vertex-triangle couplings (outside the block pattern) to their
+# matrix; the others would see only the pattern's blocks, with which Newton does not converge (two pressed
+# blocks: 4400 iterations for the first contact increment with "amg" or "banded", 46 for the whole press
+# with "direct" or "dense")
+SELF_CONTACT_SOLVERS = ("direct", "dense")
 # Levenberg-Marquardt damping of a rejected exact-Hessian step, in units of E h on the vertex diagonal:
 # it starts at LM_START, x10 per rejection up to LM_MAX, /3 per accepted full step, dropped below LM_MIN
 LM_START, LM_MAX, LM_MIN = 1e-3, 0.1, 1e-6
@@ -347,6 +353,14 @@ class SolverOptions:
             friction lags and stick anchors are per (problem, point, body); results stay per surface vertex
             (point forces lumped with the barycentric weights). Cost: ~n^2 times the contact points (see
             ``contact.py``).
+        self_contact: s, frictionless self-contact of the object's surface (``self_contact.py``): every
+            surface vertex is pushed out of the nearest facing triangle of the object's own surface that it
+            is not near at rest, with the rigid contact's penalty law at s times its stiffness (s = 1: the
+            same pressure stiffness kappa E / h and penetration tolerance). 0 (default): off, bit for bit as
+            before. Pairs are found per Newton iteration with one Warp BVH per problem. Its Hessian couples
+            vertices outside the FEM block pattern: needs linear_solver "direct" or "dense" ("auto" picks
+            "direct" where it would pick an iterative solver), which add those couplings to the matrix they
+            factor; the others would not converge (``SELF_CONTACT_SOLVERS``).
     """
 
     contact_stiffness: float = 1000.0
@@ -384,6 +398,7 @@ class SolverOptions:
     query_distance: float = 1.0
     record_tet_stress: bool = False
     contact_subdivisions: int = 1
+    self_contact: float = 0.0
 
     def __post_init__(self):
         if self.linear_solver not in LINEAR_SOLVERS:
@@ -398,6 +413,11 @@ class SolverOptions:
         n = self.contact_subdivisions
         if isinstance(n, bool) or not (isinstance(n, (int, np.integer)) and n >= 1):
             raise ValueError(f"SolverOptions.contact_subdivisions must be an int >= 1, got {n!r}")
+        sc = self.self_contact
+        if not (isinstance(sc, (bool, int, float, np.integer, np.floating)) and np.isfinite(sc) and sc >= 0):
+            raise ValueError(
+                f"SolverOptions.self_contact must be a finite stiffness scale >= 0 (0: off), got {sc!r}"
+            )
         if not (np.isfinite(self.stabilization) and self.stabilization >= 0):
             raise ValueError(f"SolverOptions.stabilization must be >= 0, got {self.stabilization!r}")
         if self.stabilization_release and self.stabilization == 0:
@@ -766,6 +786,14 @@ class QuasiStaticSolver:
         if self.linear_solver == "auto":
             dense = 3 * R <= DENSE_AUTO_MAX_UNKNOWNS["cuda" if dev.is_cuda else "cpu"]
             self.linear_solver = "dense" if dense else ("cg" if dev.is_cuda else "amg")
+            if self.options.self_contact > 0 and not dense:
+                self.linear_solver = "direct"  # the iterative solvers lack the self-contact couplings
+        if self.options.self_contact > 0 and self.linear_solver not in SELF_CONTACT_SOLVERS:
+            raise ValueError(
+                f"SolverOptions.self_contact needs linear_solver 'direct', 'dense' or 'auto', got "
+                f"{self.linear_solver!r}: self-contact couples vertices outside the FEM block pattern, which "
+                "only those factorizations hold (without the couplings Newton does not converge)"
+            )
 
         # ---------------- mesh data
         self._rest = wp.array(mesh.points, dtype=wp.vec3d, device=dev)
@@ -839,6 +867,15 @@ class QuasiStaticSolver:
         self._build_contact_points()
         P = self.num_contact_points
         self._tet_blocks = wp.array(self.pattern.tet_blocks, dtype=wp.int32, device=dev)
+        #: self-contact of the object's surface (SolverOptions.self_contact > 0), else None
+        self._self_contact = (
+            SelfContact(mesh, self.pattern, B, self.contact_length, dev)
+            if self.options.self_contact > 0
+            else None
+        )
+        if self._self_contact is not None:
+            # the factorizing solvers add the vertex-triangle couplings (the whole Gauss-Newton Hessian)
+            self.system.coupling = self._self_contact.coupling
 
         # ---------------- rigid bodies
         self._body_dof = np.array(body_dof, dtype=np.int32)
@@ -1512,6 +1549,8 @@ class QuasiStaticSolver:
                 ],
                 device=self.device,
             )
+        if self._self_contact is not None:
+            self._self_contact.add_energy(positions, TB, self._youngs, *self._self_contact_law(), active, e)
         wp.launch(
             kk.external_work_kernel,
             dim=(TB, self.rows_per_problem),
@@ -1699,6 +1738,20 @@ class QuasiStaticSolver:
                 ],
                 device=self.device,
             )
+        if self._self_contact is not None:
+            # the pairs of this state, kept for the line search that follows (one energy per iteration)
+            self._self_contact.update_pairs(self._positions)
+            self._self_contact.add_gradient_hessian(
+                self._positions,
+                self._youngs,
+                *self._self_contact_law(),
+                self.rows_per_problem,
+                self.pattern.nnz,
+                active,
+                self._free,
+                sysm.gradient,
+                sysm.values,
+            )
         wp.launch(
             kk.external_gradient_kernel,
             dim=(B, self.rows_per_problem),
@@ -1744,6 +1797,21 @@ class QuasiStaticSolver:
             self.mesh.num_vertices,
             self.num_dofs,
         ]
+
+    def _self_contact_law(self) -> tuple[float, float]:
+        """kappa (``SolverOptions.self_contact`` times the rigid one) and zeta of the self-contact penalty."""
+        o = self.options
+        return float(o.contact_stiffness) * float(o.self_contact), float(o.contact_smoothing)
+
+    def self_contact_forces(self) -> tuple[np.ndarray, np.ndarray]:
+        """At the current state of every problem: (B, N, 3) self-contact force on each vertex [N] (they sum
+        to zero per problem) and (B, S) penetration of each surface vertex (``mesh.surface_vertices`` order)
+        behind the triangle it is paired with [m], 0 where it is not behind one. Needs
+        ``SolverOptions.self_contact`` > 0."""
+        if self._self_contact is None:
+            raise ValueError("self_contact_forces needs SolverOptions.self_contact > 0")
+        self._unpack(self._q, self._positions, self._travel)
+        return self._self_contact.forces(self._positions, self._youngs, *self._self_contact_law())
 
     def _contact_state(self, positions, travel):
         if not self.num_bodies:

@@ -194,6 +194,12 @@ class BatchedSystem:
         #: (B, 3R) solutions of :attr:`extra_rhs` of the last factorizing solve (zero for problems whose
         #: ``rhs`` was zero), or None
         self.extra_increment = None
+        #: symmetric couplings outside the block pattern (self-contact between vertices that are no mesh
+        #: neighbours), or None: (rows, cols, blocks) Warp arrays of C entries per problem, problem-local
+        #: block rows and columns (C,) ... (B C,) int32 and (B C,) mat33d; each block adds (row, col) and its
+        #: transpose at (col, row). Only the direct and dense solvers add them to the matrix they factor
+        #: (the banded, CG and AMG solvers work on the pattern alone)
+        self.coupling = None
 
     def zero(self):
         self.values.zero_()
@@ -311,9 +317,13 @@ class BatchedSystem:
         residual2 = 0.0
         todo = np.nonzero(np.abs(b_all).max(axis=1) > 0)[0].tolist()
         fresh = set(self._to_factor(todo, self._direct_factors, refactor))
+        coupling = self._coupling_entries() if fresh else None
         for p in todo:
             if p in fresh:
                 A = sp.bsr_matrix((values[p], cols, offsets), shape=(n, n)).tocsc()
+                if coupling is not None:
+                    r, c, v = coupling[0][p], coupling[1][p], coupling[2][p]
+                    A = A + sp.coo_matrix((np.r_[v, v], (np.r_[r, c], np.r_[c, r])), shape=(n, n)).tocsc()
                 self._direct_factors[p] = spla.splu(
                     A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.01, options={"SymmetricMode": True}
                 )
@@ -322,6 +332,20 @@ class BatchedSystem:
                 residual2 += float(np.sum((A @ x[p] - b_all[p]) ** 2))
         self._set_increment(x)
         return 1, float(np.sqrt(residual2))
+
+    def _coupling_entries(self):
+        """(rows, cols, values) of :attr:`coupling`'s scalar entries per problem ((B, 9 C) each), or None."""
+        if self.coupling is None:
+            return None
+        rows, cols, blocks = self.coupling
+        B = self.batch_size
+        r = rows.numpy().reshape(B, -1).astype(np.int64)
+        c = cols.numpy().reshape(B, -1).astype(np.int64)
+        k = np.arange(3)
+        rr = (r[:, :, None, None] * 3 + k[None, None, :, None]) + 0 * k[None, None, None, :]
+        cc = (c[:, :, None, None] * 3 + k[None, None, None, :]) + 0 * k[None, None, :, None]
+        v = blocks.numpy().reshape(B, -1, 3, 3)
+        return rr.reshape(B, -1), cc.reshape(B, -1), v.reshape(B, -1)
 
     def _torch_solve_start(self, refactor, todo: list[int] | None = None):
         """Common start of the PyTorch factorizing solves, after Warp's assembly has finished (Warp and
@@ -414,9 +438,17 @@ class BatchedSystem:
             budget = 2e9
         chunk = max(1, int(budget // bytes_per_problem))
         worst = 0.0 if residual else float("nan")
+        coupling = self._coupling_entries() if fresh else None
+        if coupling is not None:
+            coupling = [torch.as_tensor(a, device=dev) for a in coupling]
         for ids in [fresh[i : i + chunk] for i in range(0, len(fresh), chunk)]:
             index = torch.as_tensor(ids, device=dev)
             A = self._dense_matrices(values, index)
+            if coupling is not None:
+                r, c, v = (a[index] for a in coupling)
+                flat = A.view(len(ids), n * n)
+                flat.scatter_add_(1, r * n + c, v)
+                flat.scatter_add_(1, c * n + r, v)
             if len(ids) <= DENSE_LOOP_MAX_PROBLEMS:
                 # a few problems: one factorization each (cuSOLVER's batched potrf has a large fixed cost)
                 factors = [torch.linalg.cholesky_ex(A[k]) for k in range(len(ids))]

@@ -58,6 +58,7 @@ from defgraspnets.data.grasp_schema import (
 )
 from defgraspnets.data.output_dir import check_output_dir
 from defgraspnets.data.splits import named_rng
+from defgraspnets.fem.self_contact import self_contact_depth
 
 from . import features as _features
 from .experiments import (
@@ -345,18 +346,21 @@ def _record_steps(
     eq: fem.Equilibrium,
     reject_inverted: bool,
     last_step: int | None = None,
+    contact_depth: float = 0.0,
 ) -> None:
     """Store the equilibria ``eq`` (row i: ramp ``rows[i]`` at step ``steps[i]``) in ``out``: a ramp keeps
     the first failure code it meets (inverted tets count as failed with ``reject_inverted``, and so does a
     ramp whose state at ``last_step`` passes through itself: :data:`STATUS_SELF_INTERSECTING`) and its
-    fields only while it is solved (NaN from its failure on)."""
+    fields only while it is solved (NaN from its failure on). ``contact_depth`` [m]: with self-contact,
+    surface vertices within it of another part of the surface are held by the penalty, not passed through
+    (:func:`_contact_depth`)."""
     code = np.where(eq.converged, STATUS_SOLVED, eq.status).astype(np.int8)
     if reject_inverted:
         code = np.where((code == STATUS_SOLVED) & (eq.inverted_tets > 0), STATUS_INVERTED, code)
         if last_step is not None:
             # (checked at the last step only: ~35 ms a state on a 1000-vertex mesh; squeezing goes one way)
             for i in np.flatnonzero((code == STATUS_SOLVED) & (np.asarray(steps) == last_step)).tolist():
-                if eq.mesh.surface_vertices_inside(eq.positions[i]).size:
+                if eq.mesh.surface_vertices_inside(eq.positions[i], depth=contact_depth).size:
                     code[i] = STATUS_SELF_INTERSECTING
     status = out["status"]
     newly = (status[rows] == STATUS_SOLVED) & (code != STATUS_SOLVED)
@@ -385,6 +389,14 @@ class _Ramps:
     gripper: ParallelJawGripper
 
 
+def _contact_depth(ramps: _Ramps) -> float:
+    """Penetration [m] that self-contact (``SolverOptions.self_contact`` > 0) holds, else 0: the
+    self-intersection check's allowance."""
+    if ramps.options is None or not ramps.options.self_contact > 0:
+        return 0.0
+    return self_contact_depth(ramps.mesh)
+
+
 def _squeeze_modulus(
     ramps: _Ramps, grasps: GraspSet, material: fem.Material | Sequence[fem.Material]
 ) -> dict[str, np.ndarray]:
@@ -399,7 +411,9 @@ def _squeeze_modulus(
     rows = np.arange(b)
 
     def record(s: int, _force: float, eq: fem.Equilibrium) -> None:
-        _record_steps(out, rows, np.full(b, s), eq, ramps.reject_inverted, ramps.steps - 1)
+        _record_steps(
+            out, rows, np.full(b, s), eq, ramps.reject_inverted, ramps.steps - 1, _contact_depth(ramps)
+        )
 
     squeeze_ramp(solver, ramps.max_force, ramps.steps, progress=ramps.progress, on_step=record)
     return out
@@ -434,7 +448,7 @@ def _squeeze_streamed(
             if j not in rows_of:
                 rows_of[j] = free.pop()
         rows = np.array([rows_of[j] for j in ramp_ids.tolist()], dtype=int)
-        _record_steps(running, rows, step_ids, part, ramps.reject_inverted, steps - 1)
+        _record_steps(running, rows, step_ids, part, ramps.reject_inverted, steps - 1, _contact_depth(ramps))
         # a ramp's steps arrive in order: one that reached its last step is done
         for j in np.unique(ramp_ids[step_ids == steps - 1]).tolist():
             r = rows_of.pop(j)

@@ -167,3 +167,23 @@ def travel_controlled_path(
         if eq.status[0] != 0:
             break
     return rows
+
+
+def self_intersection_summary(mesh: fem.TetMesh, points, solver: fem.QuasiStaticSolver | None = None) -> dict:
+    """How far a state (deformed ``points``, (N, 3)) passes through itself: the surface vertices strictly
+    inside the object's own tets (``inside``, as the data path's check without self-contact), those of them
+    deeper than self-contact holds (``inside_beyond_contact_depth``, the check with it;
+    ``fem.self_contact.self_contact_depth``) and, where ``solver`` has self-contact on (and is at this
+    state), its active pairs and their largest penetration [m]."""
+    from defgraspnets.fem.self_contact import self_contact_depth
+
+    x = np.asarray(points, dtype=float)
+    beyond = mesh.surface_vertices_inside(x, depth=self_contact_depth(mesh))
+    out = {"inside": int(mesh.surface_vertices_inside(x).size)}
+    out["inside_beyond_contact_depth"] = int(beyond.size)
+    if solver is not None and solver.options.self_contact > 0:
+        force, penetration = solver.self_contact_forces()
+        out["self_contact_pairs"] = int((penetration[0] > 0).sum())
+        out["self_contact_max_penetration"] = float(penetration[0].max())
+        out["self_contact_force_sum"] = float(np.abs(force[0]).sum() / 2)
+    return out

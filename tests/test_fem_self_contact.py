@@ -1,0 +1,322 @@
+"""Self-contact of the object's surface (``SolverOptions.self_contact``, ``fem/self_contact.py``)."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import warp as wp
+
+from defgraspnets import fem
+from defgraspnets.fem import self_contact as sk
+
+E = 1e4  # [Pa]
+SIZE = (0.02, 0.02, 0.01)  # [m] each block
+GAP = 5e-4  # [m] between the blocks at rest
+SHIFT = (0.0013, 0.0007)  # [m] lateral offset of the upper block (no vertex on a vertex)
+
+
+def two_blocks() -> tuple[fem.TetMesh, int]:
+    """Two 20 x 20 x 10 mm blocks of one mesh, the second 0.5 mm above the first (and shifted sideways):
+    parts of one object, far apart along its surface, near in space."""
+    a = fem.TetMesh.box(size=SIZE, divisions=(4, 4, 2))
+    n = a.num_vertices
+    upper = a.points + [SHIFT[0], SHIFT[1], SIZE[2] + GAP]
+    return fem.TetMesh(np.vstack([a.points, upper]), np.vstack([a.tets, a.tets + n])), n
+
+
+def pressed_blocks(self_contact: float, press: float, **options):
+    """The lower block's bottom fixed, the upper block's top moved down by ``press`` [m] (prescribed): the
+    equilibrium, the solver and the lower block's vertex count."""
+    mesh, n = two_blocks()
+    z = mesh.points[:, 2]
+    bottom = np.flatnonzero(z < 1e-9)
+    top = np.flatnonzero(z > 2 * SIZE[2] + GAP - 1e-9)
+    fixed = np.zeros((mesh.num_vertices, 3), dtype=bool)
+    fixed[bottom] = True
+    fixed[top] = True
+    solver = fem.QuasiStaticSolver(
+        mesh,
+        [],
+        fem.Material(E, 0.3, 1000.0, model="neohookean"),
+        fixed=fixed,
+        device="cpu",
+        options=fem.SolverOptions(
+            **{"linear_solver": "direct", **options}, self_contact=self_contact, contact_smoothing=1e-2
+        ),
+    )
+    u = np.zeros((mesh.num_vertices, 3))
+    u[top, 2] = -press
+    eq = solver.solve(prescribed_displacement=u, initial_fraction=0.25)
+    return eq, solver, n
+
+
+def test_self_contact_option_is_checked():
+    for bad in (-1.0, float("nan"), float("inf"), "yes"):
+        with pytest.raises(ValueError, match="self_contact"):
+            fem.SolverOptions(self_contact=bad)
+    assert fem.SolverOptions().self_contact == 0.0
+    solver = fem.QuasiStaticSolver(fem.TetMesh.box(divisions=(1, 1, 1)), [], device="cpu")
+    with pytest.raises(ValueError, match="self_contact"):
+        solver.self_contact_forces()
+    # the iterative and banded solvers lack the couplings outside the block pattern: refused; "auto" picks an
+    # exact one
+    box = fem.TetMesh.box(divisions=(2, 2, 2))
+    for name in ("amg", "cg", "banded", "dense_banded"):
+        with pytest.raises(ValueError, match="self_contact needs linear_solver"):
+            fem.QuasiStaticSolver(
+                box, [], device="cpu", options=fem.SolverOptions(linear_solver=name, self_contact=1)
+            )
+    big = fem.TetMesh.box(divisions=(8, 8, 8))  # "auto" would pick AMG on the CPU
+    assert fem.QuasiStaticSolver(big, [], device="cpu").linear_solver == "amg"
+    on = fem.QuasiStaticSolver(big, [], device="cpu", options=fem.SolverOptions(self_contact=1.0))
+    assert on.linear_solver == "direct"
+
+
+def test_exclusion_is_along_the_surface():
+    """A vertex never pairs with its own triangles or its 1-ring's, nor those within the exclusion radius
+    along the surface; the other block, 0.5 mm away through space, is not excluded."""
+    mesh, n = two_blocks()
+    h = mesh.median_surface_edge_length
+    start, excluded = sk.excluded_triangles(mesh, sk.SELF_CONTACT_EXCLUSION * h)
+    faces, surface = mesh.surface_faces, mesh.surface_vertices
+    for s in range(0, len(surface), 7):
+        row = excluded[start[s] : start[s + 1]]
+        assert np.all(np.diff(row) > 0)
+        v = surface[s]
+        incident = np.flatnonzero(np.any(faces == v, axis=1))
+        assert np.all(np.isin(incident, row))
+        own_block = faces[row] < n if v < n else faces[row] >= n
+        assert np.all(own_block)  # nothing of the other block
+        # the block's face farthest away along the surface is not excluded
+        assert len(row) < np.sum(np.all(faces < n, axis=1) if v < n else np.all(faces >= n, axis=1))
+
+
+def _pair_state(seed=0):
+    """The blocks at rest, every vertex jiggled by ~20 um (tilted triangles), and one vertex of the upper
+    block's bottom face pushed 0.1 mm into the lower block: one penetrating pair."""
+    mesh, n = two_blocks()
+    rng = np.random.default_rng(seed)
+    x = mesh.points + rng.normal(scale=2e-5, size=mesh.points.shape)
+    bottom_centre = [SHIFT[0] + 0.01, SHIFT[1] + 0.01, SIZE[2] + GAP]
+    v = n + int(np.argmin(np.linalg.norm(mesh.points[n:] - bottom_centre, axis=1)))
+    x[v, 2] = SIZE[2] - 1e-4
+    return mesh, x, v
+
+
+def _contact_for(mesh, x, kappa=1000.0, zeta=1e-2):
+    from defgraspnets.fem.system import BlockPattern
+
+    pattern = BlockPattern.build(mesh, 0)
+    sc = sk.SelfContact(mesh, pattern, 1, mesh.median_surface_edge_length, "cpu")
+    pos = wp.array(x, dtype=wp.vec3d, device="cpu")
+    sc.update_pairs(pos)
+    return sc, pattern
+
+
+def _energy(sc, x, youngs, kappa, zeta):
+    pos = wp.array(x, dtype=wp.vec3d, device="cpu")
+    e = wp.zeros(1, dtype=wp.float64, device="cpu")
+    sc.add_energy(pos, 1, youngs, kappa, zeta, wp.array([1], dtype=wp.int32, device="cpu"), e)
+    return float(e.numpy()[0])
+
+
+def test_gradient_and_hessian_match_finite_differences():
+    """The energy's exact gradient (the vertex and the triangle's vertices) against central differences with
+    the pair fixed; the Hessian's blocks (in the pattern, and the vertex-triangle couplings outside it) the
+    Gauss-Newton k_g c_a c_b n n^T, c = (-1, w): symmetric, PSD together, and their normal parts the finite
+    differences of the gradient."""
+    mesh, x, v = _pair_state()
+    sc, pattern = _contact_for(mesh, x)
+    N = mesh.num_vertices
+    youngs = wp.array([E], dtype=wp.float64, device="cpu")
+    kappa, zeta = 1000.0, 1e-2
+    active = wp.array([1], dtype=wp.int32, device="cpu")
+    free = wp.array(np.ones((N, 3)), dtype=wp.vec3d, device="cpu")
+
+    def assemble(xs):
+        grad = wp.zeros(N, dtype=wp.vec3d, device="cpu")
+        hess = wp.zeros(pattern.nnz, dtype=wp.mat33d, device="cpu")
+        pos = wp.array(xs, dtype=wp.vec3d, device="cpu")
+        sc.add_gradient_hessian(pos, youngs, kappa, zeta, N, pattern.nnz, active, free, grad, hess)
+        return grad.numpy(), hess.numpy()
+
+    g, H = assemble(x)
+    K = sc.arrays.candidates
+    s_v = int(np.searchsorted(mesh.surface_vertices, v))
+    candidates = sc.arrays.pair.numpy()[s_v * K : (s_v + 1) * K]
+    assert np.sum(candidates >= 0) > 1  # the nearest wins among several
+    rows, cols, coupling = (a.numpy() for a in sc.coupling)
+    f = int(np.flatnonzero(np.all(mesh.surface_faces == cols[3 * s_v : 3 * s_v + 3], axis=1))[0])
+    assert f in candidates and np.all(mesh.surface_faces[f] < v)  # a triangle of the lower block
+    touched = np.flatnonzero(np.linalg.norm(g, axis=1) > 0)
+    np.testing.assert_array_equal(touched, np.sort(np.r_[mesh.surface_faces[f], v]))
+    assert _energy(sc, x, youngs, kappa, zeta) > 0
+    np.testing.assert_allclose(g.sum(axis=0), 0.0, atol=1e-12 * np.abs(g).max())  # internal forces
+    eps = 1e-9
+    for u in touched:
+        for c in range(3):
+            xp, xm = x.copy(), x.copy()
+            xp[u, c] += eps
+            xm[u, c] -= eps
+            fd = (_energy(sc, xp, youngs, kappa, zeta) - _energy(sc, xm, youngs, kappa, zeta)) / (2 * eps)
+            assert fd == pytest.approx(g[u, c], rel=1e-5, abs=1e-6 * np.abs(g).max())
+    for u in touched:
+        blk = H[pattern.vertex_diag[u]]
+        assert np.abs(blk).max() > 0
+        np.testing.assert_allclose(blk, blk.T, atol=1e-12 * np.abs(blk).max())
+        assert np.linalg.eigvalsh(blk).min() > -1e-9 * np.abs(blk).max()
+    fd = np.zeros((3, 3))
+    for c in range(3):
+        xp, xm = x.copy(), x.copy()
+        xp[v, c] += eps
+        xm[v, c] -= eps
+        fd[:, c] = (assemble(xp)[0][v] - assemble(xm)[0][v]) / (2 * eps)
+    n = -g[v] / np.linalg.norm(g[v])  # the push-out direction
+    assert n[2] > 0.99
+    blk = H[pattern.vertex_diag[v]]
+    np.testing.assert_allclose(n @ blk @ n, n @ fd @ n, rtol=1e-5)
+    np.testing.assert_allclose(blk, (n @ blk @ n) * np.outer(n, n), atol=1e-12 * np.abs(blk).max())
+    kg = n @ blk @ n
+    # the couplings (v, corner i): -k_g w_i n n^T, the normal part of the corner's gradient's change with x_v
+    rows, cols, coupling = (a.numpy() for a in sc.coupling)  # of the last assembly (at x)
+    assemble(x)
+    rows, cols, coupling = (a.numpy() for a in sc.coupling)
+    corners = mesh.surface_faces[f]
+    slots = 3 * s_v + np.arange(3)
+    np.testing.assert_array_equal(rows[slots], v)
+    np.testing.assert_array_equal(cols[slots], corners)
+    w = np.array([-(n @ coupling[k] @ n) / kg for k in slots])
+    assert np.all(w >= 0) and w.sum() == pytest.approx(1.0)
+    for k, u in zip(slots, corners):
+        np.testing.assert_allclose(coupling[k], -kg * w[k - slots[0]] * np.outer(n, n), atol=1e-12 * kg)
+        fd_u = np.array(
+            [(assemble(x + e)[0][u] - assemble(x - e)[0][u]) @ n / (2 * eps) for e in eps_along(v, n, N)]
+        )
+        assert fd_u[0] == pytest.approx(n @ coupling[k] @ n, rel=1e-5)
+    # the whole 12 x 12 Gauss-Newton Hessian of the pair: k_g c c^T (x) n n^T, PSD
+    ids = np.r_[v, corners]
+    full = np.zeros((12, 12))
+    for a, ra in enumerate(ids):
+        for b, rb in enumerate(ids):
+            if a == 0 and b == 0:
+                block = blk
+            elif a == 0 or b == 0:
+                block = coupling[slots[max(a, b) - 1]]
+            else:
+                block = H[pattern.block_index(np.array([ra]), np.array([rb]))[0]]
+            full[3 * a : 3 * a + 3, 3 * b : 3 * b + 3] = block
+    c = np.r_[-1.0, w]
+    np.testing.assert_allclose(full, kg * np.kron(np.outer(c, c), np.outer(n, n)), atol=1e-9 * kg)
+
+
+def eps_along(v, n, N, eps=1e-9):
+    """The displacement of vertex v by eps along n, as an (N, 3) array in a one-element list."""
+    e = np.zeros((N, 3))
+    e[v] = eps * n
+    return [e]
+
+
+def test_off_is_bit_for_bit_the_engine_without_it():
+    """self_contact = 0 (default) reproduces a frictional pad squeeze bit for bit."""
+    from fem_helpers import assert_same_squeeze, pad_squeeze_solver
+
+    a = pad_squeeze_solver([0.0, 0.003], linear_solver="direct").solve({"grip": 2.0})
+    b = pad_squeeze_solver([0.0, 0.003], linear_solver="direct", self_contact=0.0).solve({"grip": 2.0})
+    assert_same_squeeze(a, b)
+
+
+def test_a_pressed_block_passes_through_the_other_without_and_rests_on_it_with_self_contact():
+    """The upper block pressed 2 mm down onto the lower one (0.5 mm apart): without self-contact it passes
+    into it (its surface vertices inside the lower block's tets); with it the blocks meet, no vertex is
+    inside, the penetration stays within the penalty's tolerance, and the force the press needs is what
+    the self-contact transmits, which the lower block's support carries."""
+    press = 2e-3
+    off, _, _ = pressed_blocks(0.0, press)
+    assert off.status[0] == fem.SolveStatus.CONVERGED
+    mesh = off.mesh
+    depth = sk.self_contact_depth(mesh)  # what self-contact holds (a quarter of the 5 mm edges)
+    assert len(mesh.surface_vertices_inside(mesh.points + off.displacement[0], depth=depth)) > 10
+    assert np.abs(off.reaction_force[0]).max() < 1e-9  # nothing resists a rigid move down
+
+    on, solver, n = pressed_blocks(1.0, press)
+    assert on.status[0] == fem.SolveStatus.CONVERGED
+    x = mesh.points + on.displacement[0]
+    assert mesh.surface_vertices_inside(x).size > 0  # the penalty's penetration, strictly inside
+    assert mesh.surface_vertices_inside(x, depth=depth).size == 0
+    force, pen = solver.self_contact_forces()
+    z = mesh.points[:, 2]
+    lower_support = on.reaction_force[0, z < 1e-9].sum(axis=0)
+    upper_support = on.reaction_force[0, z > 2 * SIZE[2] + GAP - 1e-9].sum(axis=0)
+    pushed = force[0, n:].sum(axis=0)  # self-contact force on the upper block
+    assert pushed[2] > 0.1 * E * SIZE[0] * SIZE[1] * 0.01  # a real load (strain of a few %)
+    np.testing.assert_allclose(force[0].sum(axis=0), 0.0, atol=1e-9 * np.abs(force).max())
+    np.testing.assert_allclose(upper_support, -pushed, rtol=1e-4, atol=1e-6 * pushed[2])
+    np.testing.assert_allclose(lower_support, pushed, rtol=1e-4, atol=1e-6 * pushed[2])
+    # penetration tolerance: p h / (kappa E) + zeta h / 2 with the mean pressure p (and a margin for the
+    # uneven pressure of the pressed faces)
+    h = solver.contact_length
+    p = pushed[2] / (SIZE[0] * SIZE[1])
+    tolerance = p * h / (1000.0 * E) + 1e-2 * h / 2
+    assert 0 < pen.max() < 3 * tolerance
+    # the dense solver adds the same couplings (its own scatter): the same equilibrium
+    dense, _, _ = pressed_blocks(1.0, press, linear_solver="dense")
+    assert dense.status[0] == fem.SolveStatus.CONVERGED
+    np.testing.assert_allclose(dense.displacement, on.displacement, atol=1e-9)
+
+
+def test_the_data_path_allows_the_penalty_depth_and_still_fails_a_pass_through():
+    """With self-contact the data path's self-intersection check (STATUS_SELF_INTERSECTING) allows surface
+    vertices within the pairs' depth cap of another part of the surface (held there by the penalty), and
+    still fails an object whose parts have passed through each other; without it (depth 0) both fail."""
+    from types import SimpleNamespace
+
+    from omegaconf import OmegaConf
+
+    from defgraspnets.grasp import datagen
+    from defgraspnets.grasp.squeeze import squeeze_solver_options
+
+    b = fem.TetMesh.box(size=(1.0, 1.0, 1.0), divisions=(2, 2, 2))
+    n = b.num_vertices
+    two = fem.TetMesh(np.vstack([b.points, b.points + [2.0, 0.0, 0.0]]), np.vstack([b.tets, b.tets + n]))
+    depth = sk.self_contact_depth(two)
+    assert depth == pytest.approx(sk.SELF_CONTACT_DEPTH * 0.5)
+    shallow, through = np.zeros((2 * n, 3)), np.zeros((2 * n, 3))
+    shallow[n:] -= [1.0 + 0.4 * depth, 0.13, 0.07]  # pressed 0.4 of the cap into the first box
+    through[n:] -= [1.7, 0.13, 0.07]
+    assert two.surface_vertices_inside(two.points + shallow).size > 0
+    assert two.surface_vertices_inside(two.points + shallow, depth=depth).size == 0
+    assert two.surface_vertices_inside(two.points + through, depth=depth).size > 4
+
+    def eq(displacements):
+        u = np.stack(displacements)
+        return SimpleNamespace(
+            mesh=two, converged=np.ones(len(u), dtype=bool), status=np.zeros(len(u), dtype=np.int32),
+            inverted_tets=np.zeros(len(u), dtype=int), positions=two.points[None] + u, displacement=u,
+            von_mises=np.zeros((len(u), 2 * n)), dof_force={"grip": np.ones(len(u))},
+            travel={"grip": np.ones(len(u))},
+        )  # fmt: skip
+
+    for options, expected in ((None, 7), (squeeze_solver_options(self_contact=1.0), 0)):
+        ramps = SimpleNamespace(mesh=two, options=options)
+        out = datagen._empty_ramps(2, 1, 2 * n)
+        rows = np.array([0, 1])
+        states = eq([shallow, through])
+        datagen._record_steps(out, rows, np.array([0, 0]), states, True, 0, datagen._contact_depth(ramps))
+        assert out["status"].tolist() == [expected, datagen.STATUS_SELF_INTERSECTING]
+    # the datagen key: null keeps the squeeze default (off); a bad value names the key
+    config = Path(__file__).resolve().parents[1] / "configs/datagen/grasps.yaml"
+    assert OmegaConf.load(config).self_contact is None
+    assert squeeze_solver_options(self_contact=None).self_contact == 0.0
+    with pytest.raises(ValueError, match="self_contact"):
+        squeeze_solver_options(self_contact=-1.0)
+
+
+@pytest.mark.parametrize("name", ["annulus_ro45_ri35_h20_ftetwild.vtu", "cuboid_60x40x20.vtu"])
+def test_no_self_contact_at_rest_on_data_path_meshes(name):
+    """At rest nothing touches itself: an fTetWild ring (a 10 mm wall) and a slab of the data path have no
+    penetrating pair (no false contact of a vertex with its own surface or across a wall)."""
+    mesh = fem.TetMesh.load(Path(__file__).parent / "data" / name)
+    solver = fem.QuasiStaticSolver(mesh, [], device="cpu", options=fem.SolverOptions(self_contact=1.0))
+    force, pen = solver.self_contact_forces()
+    assert pen.shape == (1, len(mesh.surface_vertices))
+    assert not pen.any() and not force.any()
