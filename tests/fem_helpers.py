@@ -204,3 +204,28 @@ def pressed_block(mu: float, normal_force: float = 1.0, E: float = 1e5, size: fl
     )
     solver.solve(targets={"press": normal_force}).require_converged()
     return mesh, solver
+
+
+def two_unit_boxes():
+    """Two 1 m boxes (2 x 2 x 2 divisions) of one mesh, 1 m apart along x, and the first box's vertex count:
+    the data path's self-intersection tests move the second one into the first."""
+    from defgraspnets.fem import TetMesh
+
+    b = TetMesh.box(size=(1.0, 1.0, 1.0), divisions=(2, 2, 2))
+    n = b.num_vertices
+    return TetMesh(np.vstack([b.points, b.points + [2.0, 0.0, 0.0]]), np.vstack([b.tets, b.tets + n])), n
+
+
+def converged_states(mesh, displacements):
+    """A stand-in for the converged ``fem.Equilibrium`` of len(displacements) problems of ``mesh`` at the
+    given (N, 3) displacements: what ``grasp.datagen._record_steps`` reads (status, inverted tets, positions,
+    fields, grip force and travel)."""
+    from types import SimpleNamespace
+
+    u = np.stack(displacements)
+    return SimpleNamespace(
+        mesh=mesh, converged=np.ones(len(u), dtype=bool), status=np.zeros(len(u), dtype=np.int32),
+        inverted_tets=np.zeros(len(u), dtype=int), positions=mesh.points[None] + u, displacement=u,
+        von_mises=np.zeros((len(u), mesh.num_vertices)), dof_force={"grip": np.ones(len(u))},
+        travel={"grip": np.ones(len(u))},
+    )  # fmt: skip

@@ -431,28 +431,18 @@ def test_the_script_grasps_a_tet_mesh_file_with_its_labels(tmp_path):
 
 
 def test_a_ramp_whose_object_passes_through_itself_at_its_last_step_is_failed():
-    """The data path flags a converged ramp whose last state passes through itself (the FEM has no
-    self-contact: a thin ring squeezed flat, e.g. annulus_ro30_ri25_h50 at 100 kPa, ends with 49 of its
+    """The data path flags a converged ramp whose last state passes through itself (without self-contact,
+    the squeeze default: a thin ring squeezed flat, e.g. annulus_ro30_ri25_h50 at 100 kPa, ends with 49 of its
     surface vertices inside its own tets) STATUS_SELF_INTERSECTING (7), keeping its earlier steps' fields."""
-    from types import SimpleNamespace
+    from fem_helpers import converged_states, two_unit_boxes
 
-    from defgraspnets.fem import TetMesh
-
-    b = TetMesh.box(size=(1.0, 1.0, 1.0), divisions=(2, 2, 2))
-    n = b.num_vertices
-    two = TetMesh(np.vstack([b.points, b.points + [2.0, 0.0, 0.0]]), np.vstack([b.tets, b.tets + n]))
+    two, n = two_unit_boxes()
     apart = np.zeros((2 * n, 3))
     through = apart.copy()
     through[n:] -= [1.7, 0.13, 0.07]
 
     def eq(displacements):
-        u = np.stack(displacements)
-        return SimpleNamespace(
-            mesh=two, converged=np.ones(len(u), dtype=bool), status=np.zeros(len(u), dtype=np.int32),
-            inverted_tets=np.zeros(len(u), dtype=int), positions=two.points[None] + u, displacement=u,
-            von_mises=np.zeros((len(u), 2 * n)), dof_force={"grip": np.ones(len(u))},
-            travel={"grip": np.ones(len(u))},
-        )  # fmt: skip
+        return converged_states(two, displacements)
 
     out = datagen._empty_ramps(2, 2, 2 * n)
     rows = np.array([0, 1])

@@ -5,6 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import warp as wp
+from fem_helpers import converged_states, two_unit_boxes
 
 from defgraspnets import fem
 from defgraspnets.fem import self_contact as sk
@@ -275,9 +276,7 @@ def test_the_data_path_allows_the_penalty_depth_and_still_fails_a_pass_through()
     from defgraspnets.grasp import datagen
     from defgraspnets.grasp.squeeze import squeeze_solver_options
 
-    b = fem.TetMesh.box(size=(1.0, 1.0, 1.0), divisions=(2, 2, 2))
-    n = b.num_vertices
-    two = fem.TetMesh(np.vstack([b.points, b.points + [2.0, 0.0, 0.0]]), np.vstack([b.tets, b.tets + n]))
+    two, n = two_unit_boxes()
     depth = sk.self_contact_depth(two)
     assert depth == pytest.approx(sk.SELF_CONTACT_DEPTH * 0.5)
     shallow, through = np.zeros((2 * n, 3)), np.zeros((2 * n, 3))
@@ -287,20 +286,11 @@ def test_the_data_path_allows_the_penalty_depth_and_still_fails_a_pass_through()
     assert two.surface_vertices_inside(two.points + shallow, depth=depth).size == 0
     assert two.surface_vertices_inside(two.points + through, depth=depth).size > 4
 
-    def eq(displacements):
-        u = np.stack(displacements)
-        return SimpleNamespace(
-            mesh=two, converged=np.ones(len(u), dtype=bool), status=np.zeros(len(u), dtype=np.int32),
-            inverted_tets=np.zeros(len(u), dtype=int), positions=two.points[None] + u, displacement=u,
-            von_mises=np.zeros((len(u), 2 * n)), dof_force={"grip": np.ones(len(u))},
-            travel={"grip": np.ones(len(u))},
-        )  # fmt: skip
-
     for options, expected in ((None, 7), (squeeze_solver_options(self_contact=1.0), 0)):
         ramps = SimpleNamespace(mesh=two, options=options)
         out = datagen._empty_ramps(2, 1, 2 * n)
         rows = np.array([0, 1])
-        states = eq([shallow, through])
+        states = converged_states(two, [shallow, through])
         datagen._record_steps(out, rows, np.array([0, 0]), states, True, 0, datagen._contact_depth(ramps))
         assert out["status"].tolist() == [expected, datagen.STATUS_SELF_INTERSECTING]
     # the datagen key: null keeps the squeeze default (off); a bad value names the key
