@@ -428,6 +428,16 @@ def test_the_script_grasps_a_tet_mesh_file_with_its_labels(tmp_path):
     # a bad solver key is an error that names it
     r = run(f"object={mesh_file}", "max_newton_first_step=-5", "device=cpu", f"out_dir={tmp_path}/bad")
     assert r.returncode != 0 and "max_newton_first_step must be None or an integer >= 0, got -5" in r.stderr
+    # self-contact with a solver that cannot hold its couplings: refused before a shard file is started
+    r = run(
+        f"object={mesh_file}",
+        "self_contact=1.0",
+        "linear_solver=banded",
+        "device=cpu",
+        f"out_dir={tmp_path}/sc",
+    )
+    assert r.returncode != 0 and "self_contact needs linear_solver 'direct', 'dense' or 'auto'" in r.stderr
+    assert not (tmp_path / "sc").exists() or not any((tmp_path / "sc").iterdir())
 
 
 def test_a_ramp_whose_object_passes_through_itself_at_its_last_step_is_failed():

@@ -418,6 +418,13 @@ class SolverOptions:
             raise ValueError(
                 f"SolverOptions.self_contact must be a finite stiffness scale >= 0 (0: off), got {sc!r}"
             )
+        if sc > 0 and self.linear_solver not in ("auto", *SELF_CONTACT_SOLVERS):
+            # refused here, before a caller (the grasp generator) writes anything
+            raise ValueError(
+                f"SolverOptions.self_contact needs linear_solver 'direct', 'dense' or 'auto', got "
+                f"{self.linear_solver!r}: self-contact couples vertices outside the FEM block pattern, which "
+                "only those factorizations hold (without the couplings Newton does not converge)"
+            )
         if not (np.isfinite(self.stabilization) and self.stabilization >= 0):
             raise ValueError(f"SolverOptions.stabilization must be >= 0, got {self.stabilization!r}")
         if self.stabilization_release and self.stabilization == 0:
@@ -788,12 +795,6 @@ class QuasiStaticSolver:
             self.linear_solver = "dense" if dense else ("cg" if dev.is_cuda else "amg")
             if self.options.self_contact > 0 and not dense:
                 self.linear_solver = "direct"  # the iterative solvers lack the self-contact couplings
-        if self.options.self_contact > 0 and self.linear_solver not in SELF_CONTACT_SOLVERS:
-            raise ValueError(
-                f"SolverOptions.self_contact needs linear_solver 'direct', 'dense' or 'auto', got "
-                f"{self.linear_solver!r}: self-contact couples vertices outside the FEM block pattern, which "
-                "only those factorizations hold (without the couplings Newton does not converge)"
-            )
 
         # ---------------- mesh data
         self._rest = wp.array(mesh.points, dtype=wp.vec3d, device=dev)
