@@ -207,6 +207,12 @@ def nearest_penetration(sc: SelfContactArrays, positions: wp.array(dtype=wp.vec3
     return f, pen, n, w
 
 
+@wp.func
+def pair_stiffness(sc: SelfContactArrays, kappa: f64, youngs: f64, s: int) -> f64:
+    """k_v = kappa E (A_v / 2) / h of surface vertex s: an interface is penalized from both sides."""
+    return ck.contact_stiffness(kappa, youngs, f64(0.5) * sc.area[s], sc.size)
+
+
 @wp.kernel
 def pair_kernel(
     positions: wp.array(dtype=wp.vec3d),
@@ -275,7 +281,7 @@ def self_contact_energy_kernel(
         return
     f, pen, n, w = nearest_penetration(sc, positions, p * sc.num_vertices, b, s)
     if pen > f64(0.0):
-        kn = ck.contact_stiffness(kappa, youngs[b], f64(0.5) * sc.area[s], sc.size)
+        kn = pair_stiffness(sc, kappa, youngs[b], s)
         wp.atomic_add(energy, p, ck.penalty_energy(pen, kn, smoothing * sc.size))
 
 
@@ -306,7 +312,7 @@ def self_contact_gradient_hessian_kernel(
     f, pen, n, w = nearest_penetration(sc, positions, b * sc.num_vertices, b, s)
     if pen <= f64(0.0):
         return
-    kn = ck.contact_stiffness(kappa, youngs[b], f64(0.5) * sc.area[s], sc.size)
+    kn = pair_stiffness(sc, kappa, youngs[b], s)
     delta = smoothing * sc.size
     fn = ck.penalty_force(pen, kn, delta)
     nn = ck.penalty_stiffness(pen, kn, delta) * wp.outer(n, n)
@@ -349,7 +355,7 @@ def self_contact_force_kernel(
     penetration[slot] = pen
     if pen <= f64(0.0):
         return
-    kn = ck.contact_stiffness(kappa, youngs[b], f64(0.5) * sc.area[s], sc.size)
+    kn = pair_stiffness(sc, kappa, youngs[b], s)
     fn = ck.penalty_force(pen, kn, smoothing * sc.size)
     o = b * sc.num_vertices
     wp.atomic_add(force, o + sc.surface[s], fn * n)

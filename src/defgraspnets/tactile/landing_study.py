@@ -81,15 +81,14 @@ def run_landing_study(
 ) -> dict:
     """Pokes of a sphere of ``radius`` [m] at the ``points`` landing points (:func:`landing_points` of the
     cap-8 membrane, the same directions for every membrane) for each ``(cap_divisions,
-    contact_subdivisions)`` of ``configs``, read at ``depths`` [m], the FEM on Warp's current device
-    (``device`` picks the solver options' defaults: :func:`.sensor.membrane_solver_options`).
+    contact_subdivisions)`` of ``configs``, read at ``depths`` [m], the FEM on Warp's ``device`` (None: its
+    current one) with the sensor's solver options for it (:func:`.sensor.membrane_solver_options`).
     ``report(cap, n, name, run)`` is called after each poke (progress lines). Returns the JSON-ready
     results: depths, radius, layers, landing directions, and per config "cap:n" its set-up seconds, contact
     points and per landing point :func:`radial_poke_series`."""
     from defgraspnets.tactile.datasets import make_simulator
     from defgraspnets.tactile.indenters import SphereIndenter
     from defgraspnets.tactile.membrane import build_membrane
-    from defgraspnets.tactile.sensor import membrane_solver_options
 
     unknown = sorted(set(points) - set(LANDING_POINTS))
     if unknown:
@@ -112,9 +111,11 @@ def run_landing_study(
     for cap, n in configs:
         sensor = build_membrane(cap_divisions=int(cap), layers=int(layers))
         t0 = time.perf_counter()
-        options = membrane_solver_options(device, contact_subdivisions=int(n))
         indenter = SphereIndenter(radius=radius)
-        sim = make_simulator(sensor, indenter, gauge_pressure, closed=True, intrinsics=None, options=options)
+        sim = make_simulator(
+            sensor, indenter, gauge_pressure, True, intrinsics=None, device=device,
+            contact_subdivisions=int(n),
+        )  # fmt: skip
         run = {"setup_seconds": time.perf_counter() - t0, "contact_points": sim.solver.num_contact_points}
         run["points"] = {}
         for name in points:
