@@ -222,6 +222,67 @@ def test_jobs_that_move_bodies_stream_as_solves_with_body_poses():
         solver.solve_stream([[{"body_poses": {"left": np.eye(3)}}]], start, on_levels)
 
 
+def test_jobs_that_set_body_loads_stream_as_solves_with_body_load():
+    """Levels with "body_load" load the object as solve(body_load=...) does: five jobs (grip harder, then
+    a linear and an angular acceleration of the holding frame, each job its own direction) through two
+    problems reach the equilibria of one batch solving the levels with solve(), bit for bit; a level
+    without the key keeps the load before it, and each problem ends with its job's last load."""
+    gravity = (0.0, 0.0, -9.81)
+    accel = np.array([[3.0, 0.0, 1.0], [0.0, 4.0, 0.0], [-2.0, 1.0, 0.0], [1.0, 1.0, 1.0], [0.0, 0.0, 5.0]])
+    spin = np.array(
+        [[0.0, 0.0, 60.0], [40.0, 0.0, 0.0], [0.0, 50.0, 0.0], [30.0, 30.0, 0.0], [0.0, -40.0, 20.0]]
+    )
+    center = (0.0, 0.0, 0.01)
+    linear = [fem.BodyLoad(gravity=gravity, linear_acceleration=a) for a in accel]
+    angular = [fem.BodyLoad(gravity=gravity, angular_acceleration=w, rotation_center=center) for w in spin]
+    expected = _solver()
+    want = [
+        expected.solve(targets={"grip": FORCES}),
+        expected.solve(body_load=fem.BodyLoad(gravity=gravity, linear_acceleration=accel)),
+        expected.solve(targets={"grip": 1.2 * FORCES}),
+        expected.solve(
+            body_load=fem.BodyLoad(gravity=gravity, angular_acceleration=spin, rotation_center=center)
+        ),
+    ]
+    jobs = [
+        [
+            {"grip": float(FORCES[j])},
+            {"body_load": linear[j]},
+            {"grip": float(1.2 * FORCES[j])},
+            {"body_load": angular[j]},
+        ]
+        for j in range(5)
+    ]
+    template = _solver()
+    solver = _solver(OFFSETS[:2])
+    got, final, holder = {}, {}, {}
+
+    def start(problems, job_ids):
+        solver.copy_state_from(template, rows=job_ids, into=problems)
+        holder.update(zip(job_ids.tolist(), problems.tolist()))
+
+    def on_levels(job_ids, levels, part):
+        for i, (j, k) in enumerate(zip(job_ids.tolist(), levels.tolist())):
+            got[(j, k)] = _row(part, i)
+            if k == 3:
+                final[j] = {name: v[holder[j]].copy() for name, v in solver._load.arrays(2).items()}
+
+    solver.solve_stream(jobs, start, on_levels)
+    for j in range(5):
+        for k in range(4):
+            _assert_same(_row(want[k], j), got[(j, k)])
+        assert got[(j, 3)].converged[0]
+        np.testing.assert_array_equal(final[j]["angular_acceleration"], spin[j])
+        np.testing.assert_array_equal(final[j]["linear_acceleration"], 0.0)
+    # the accelerations moved the box: the held box lags the frame's acceleration (d'Alembert load -m a)
+    shift = got[(0, 1)].displacement[0].mean(axis=0) - got[(0, 0)].displacement[0].mean(axis=0)
+    assert shift[0] < 0 and abs(shift[0]) > abs(shift[1])
+    with pytest.raises(TypeError, match="body_load of level 0 of job 0 must be a BodyLoad"):
+        solver.solve_stream([[{"body_load": (0.0, 0.0, 1.0)}]], start, on_levels)
+    with pytest.raises(ValueError):
+        solver.solve_stream([[{"body_load": fem.BodyLoad(gravity=np.zeros((2, 3)))}]], start, on_levels)
+
+
 def test_jobs_are_checked():
     solver = _solver(OFFSETS[:2])
 

@@ -2124,7 +2124,7 @@ class QuasiStaticSolver:
         try:
             self._stream(
                 B,
-                lambda jobs, problems: [(table[:, j], None) for j in jobs],
+                lambda jobs, problems: [(table[:, j], None, None) for j in jobs],
                 None,
                 reached,
                 None if check is None else (lambda jobs, steps, part: check(steps, part, jobs)),
@@ -2162,7 +2162,11 @@ class QuasiStaticSolver:
                 ``"body_poses"`` maps body names to 4x4 poses, reached as ``solve(body_poses=...)``
                 reaches them (along the geodesic with the load fraction, dragging the contacts: shear,
                 twist); unnamed bodies keep their previous level's poses (the first level's: the
-                problem's after ``start``).
+                problem's after ``start``). The key ``"body_load"`` gives the level's :class:`BodyLoad`
+                (fields of shape (3,): this job's gravity, frame accelerations), reached as
+                ``solve(body_load=...)`` reaches it (its nodal forces linear in the load fraction); a
+                level without it keeps the previous level's load (the first level's: the problem's after
+                ``start``).
             start: ``start(problems, job_ids)`` must put the problems (integer indices) into the start states
                 of the jobs, e.g. :meth:`copy_state_from` a solved template problem (``into=problems``) and
                 :meth:`set_body_pose` (``rows=problems``); it must not touch the other problems. Called
@@ -2199,29 +2203,44 @@ class QuasiStaticSolver:
                             check_rigid_transform(pose, f"pose of body {body!r} in {where}")
                         moving = moving or bool(value)
                         continue
+                    if name == "body_load":
+                        if not isinstance(value, BodyLoad):
+                            got = type(value).__name__
+                            raise TypeError(
+                                f"body_load of level {k} of job {j} must be a BodyLoad, got {got}"
+                            )
+                        value.arrays(1)  # one problem's load: every field (3,) or (1, 3)
+                        continue
                     self._dof(name)
                     if not (np.ndim(value) == 0 and np.isfinite(value)):
                         raise ValueError(f"target {name!r} of level {k} of job {j} must be a finite scalar")
 
         def tables(job_ids, problems):
-            """Each job's (L, D) dof targets and (L, K, 4, 4) body poses (None: no level moves a body)."""
+            """Each job's (L, D) dof targets, (L, K, 4, 4) body poses (None: no level moves a body) and
+            per level its BodyLoad (None: no level sets one)."""
             out = []
             for j, b in zip(job_ids, problems):
                 targets, rows = self._dof_target[b].copy(), []
                 poses, pose_rows = self._poses[b].copy(), []
+                load, loads = None, []
                 for level in jobs[j]:
                     targets = targets.copy()
                     for name, value in level.items():
-                        if name != "body_poses":
+                        if name not in ("body_poses", "body_load"):
                             targets[self._dof(name)] = float(value)
                     if level.get("body_poses"):
                         poses = poses.copy()
                         for body, pose in level["body_poses"].items():
                             poses[self._body(body)] = pose
+                    load = level.get("body_load", load)
                     rows.append(targets)
                     pose_rows.append(poses)
+                    loads.append(load)
                 moved = any(level.get("body_poses") for level in jobs[j])
-                out.append((np.stack(rows), np.stack(pose_rows) if moved else None))
+                loaded = any("body_load" in level for level in jobs[j])
+                out.append(
+                    (np.stack(rows), np.stack(pose_rows) if moved else None, loads if loaded else None)
+                )
             return out
 
         bar = None
@@ -2242,10 +2261,23 @@ class QuasiStaticSolver:
             if bar is not None:
                 bar.close()
 
+    def _set_body_loads(self, rows: np.ndarray, loads) -> np.ndarray:
+        """Problems ``rows`` take the body loads ``loads`` (one :class:`BodyLoad` each, fields (3,)), as
+        ``solve(body_load=...)`` sets them; returns their (len(rows), N, 3) nodal forces [N]."""
+        fields = {k: np.array(v) for k, v in self._load.arrays(self.batch_size).items()}
+        for b, load in zip(rows.tolist(), loads):
+            for k, v in load.arrays(1).items():
+                fields[k][b] = v[0]
+        self._load = BodyLoad(**fields)
+        masses = self._masses[None, :] * self._density_np[rows][:, None]
+        mine = BodyLoad(**{k: v[rows] for k, v in fields.items()})
+        return mine.nodal_forces(self.mesh.points, masses, len(rows))
+
     def _stream(self, num_jobs: int, tables, start, reached, check, moving: bool = False) -> None:
         """The engine of :meth:`solve_sequence` and :meth:`solve_stream`: jobs 0..num_jobs-1 flow through
-        the batch's problems. ``tables(job_ids, problems)`` gives each job's (L_j, D) dof targets and its
-        (L_j, K, 4, 4) body poses (None: the job moves no body) once its problem has been started
+        the batch's problems. ``tables(job_ids, problems)`` gives each job's (L_j, D) dof targets, its
+        (L_j, K, 4, 4) body poses (None: the job moves no body) and its L_j body loads (None: the job sets
+        none; an entry None: the load the problem has) once its problem has been started
         (``start(problems, job_ids)``, or the problem as it is if ``start`` is None); ``reached(job_ids,
         levels, part)`` and ``check`` as solve_stream's ``on_levels`` and ``check``; ``moving``: some job
         moves a body (the load paths then interpolate the poses, as ``solve(body_poses=...)``)."""
@@ -2259,7 +2291,20 @@ class QuasiStaticSolver:
         level = np.zeros(B, dtype=int)
         table: dict[int, np.ndarray] = {}
         pose_table: dict[int, np.ndarray] = {}  # the jobs that move bodies: their poses per level
+        load_table: dict[int, list] = {}  # the jobs that set body loads: their BodyLoad per level
         queue = [0]  # the next job to start
+
+        def level_loads(rows: np.ndarray) -> None:
+            """The body loads of ``rows``' current levels: the path's end nodal forces and the solver's
+            body loads (as solve(body_load=...) sets them) of the problems whose job sets one."""
+            sel = [
+                b
+                for b in rows.tolist()
+                if int(job_of[b]) in load_table and load_table[int(job_of[b])][level[b]] is not None
+            ]
+            if sel:
+                loads = [load_table[int(job_of[b])][level[b]] for b in sel]
+                path.end["nodal_force"][sel] = self._set_body_loads(np.array(sel), loads)
 
         def settle_poses(rows: np.ndarray) -> None:
             """Bodies of ``rows`` at the poses of their last converged load fraction (as solve() leaves a
@@ -2288,6 +2333,7 @@ class QuasiStaticSolver:
             for b in problems:
                 table.pop(int(job_of[b]), None)
                 pose_table.pop(int(job_of[b]), None)
+                load_table.pop(int(job_of[b]), None)
             job_of[problems] = -1
 
         def assign(free: np.ndarray) -> np.ndarray:
@@ -2300,10 +2346,12 @@ class QuasiStaticSolver:
                 queue[0] += n
                 if start is not None:
                     start(problems, ids)
-                for j, (t, poses) in zip(ids, tables(ids, problems)):
+                for j, (t, poses, loads) in zip(ids, tables(ids, problems)):
                     table[int(j)] = t
                     if poses is not None:
                         pose_table[int(j)] = poses
+                    if loads is not None:
+                        load_table[int(j)] = loads
                 job_of[problems] = ids
                 level[problems] = 0
                 now = self._loads_now()
@@ -2314,6 +2362,7 @@ class QuasiStaticSolver:
                 for b, j in zip(problems.tolist(), ids.tolist()):
                     if j in pose_table:
                         path.end["poses"][b] = pose_table[j][0]
+                level_loads(problems)
                 self._dof_target[problems] = path.end["dof"][problems]
                 path.change[problems] = _load_change(
                     {k: v[problems] for k, v in path.start.items()},
@@ -2359,6 +2408,7 @@ class QuasiStaticSolver:
                 path.end["dof"][move] = np.stack(
                     [table[int(job_of[b])][level[b]] for b in np.nonzero(move)[0]]
                 )
+                level_loads(np.nonzero(move)[0])
                 if moving:  # the next level starts at the poses this one reached
                     path.start["poses"][move] = self._poses[move]
                     for b in np.nonzero(move)[0]:
