@@ -278,40 +278,49 @@ def test_linear_acceleration_thresholds_match_coulomb(experiments):
     assert res.instability[0] == pytest.approx(a.mean())
 
 
-def test_lost_problems_cost_no_further_newton_iterations(box, monkeypatch):
-    """Once a problem of the acceleration ramp is lost (no equilibrium: flagged and skipped by the solver; a
-    hold criterion failed: its load is frozen, so it starts at equilibrium) it spends no Newton iteration in
-    the later load steps of its batch; ``newton_iterations`` counts each problem's iterations of the ramp."""
+def test_a_lost_pair_frees_its_problem_for_the_next(box, monkeypatch):
+    """The acceleration test streams its (grasp, direction) pairs through G x directions_per_solver
+    problems: with one problem, the pair along the pads (they slide at mu F / m) is solved level by level
+    until it is lost and no further, then the pair along the closing axis (a finger unloads at F / m) takes
+    the problem; the thresholds, failures and Newton iterations are those of both pairs in one batch."""
     from defgraspnets.grasp import experiments as exp_module
 
-    calls, holds = [], []
-    real_solve, real_hold = fem.QuasiStaticSolver.solve, exp_module.hold_state
-
-    def solve(self, *args, **kwargs):
-        eq = real_solve(self, *args, **kwargs)
-        calls.append(eq.newton_iterations.copy())
-        return eq
+    events = []
+    real_hold, real_copy = exp_module.hold_state, fem.QuasiStaticSolver.copy_state_from
 
     def hold(*args, **kwargs):
         hs = real_hold(*args, **kwargs)
-        holds.append(hs.held.copy())
+        events.append(("level held", bool(hs.held.all()), len(hs.held)))
         return hs
 
+    def copy(self, other, rows, into=None):
+        events.append(("start", None, len(rows)))
+        return real_copy(self, other, rows, into)
+
     settings = ExperimentSettings(acceleration_steps=16)
-    ex = GraspExperiments(box, centered_grasp(), MATERIAL, settings, device="cpu", directions_per_solver=2)
-    monkeypatch.setattr(fem.QuasiStaticSolver, "solve", solve)
+    dirs = [[1, 0, 0], [0, 1, 0]]
+    both = GraspExperiments(box, centered_grasp(), MATERIAL, settings, device="cpu", directions_per_solver=2)
+    together = both.acceleration("linear", dirs)
+    one = GraspExperiments(box, centered_grasp(), MATERIAL, settings, device="cpu", directions_per_solver=1)
+    one.acceleration("linear", dirs[:1])  # squeezed before the counting starts
     monkeypatch.setattr(exp_module, "hold_state", hold)
-    # along the pads (they slide at mu F / m) and along the closing axis (a finger unloads at F / m), in one
-    # batch: the first is lost steps before the second
-    res = ex.acceleration("linear", [[1, 0, 0], [0, 1, 0]])
-    ramp = calls[-len(holds) :]  # the ramp's solves follow the squeeze's
-    assert len(ramp) <= ex.settings.acceleration_steps
-    assert np.all(res.failure[0] != GraspFailure.HELD)
-    lost = np.cumsum(~np.array(holds), axis=0) > 0  # (steps, 2): lost at or before the step
-    assert lost[:-1].any(), "one direction must be lost before the ramp ends"
-    iterations = np.array(ramp)  # (steps, 2)
-    assert np.all(iterations[1:][lost[:-1]] == 0)
-    assert np.array_equal(res.newton_iterations[0], iterations.sum(axis=0)) and np.all(iterations[0] > 0)
+    monkeypatch.setattr(fem.QuasiStaticSolver, "copy_state_from", copy)
+    res = one.acceleration("linear", dirs)
+    assert all(n == 1 for _, _, n in events)  # one problem: one pair at a time
+    starts = [i for i, e in enumerate(events) if e[0] == "start"]
+    assert len(starts) == 2 and starts[0] == 0
+    first = [held for _, held, _ in events[1 : starts[1]]]  # the first pair's levels checked
+    step = res.limit / settings.acceleration_steps
+    assert res.failure[0, 0] != GraspFailure.HELD and res.threshold[0, 0] < res.threshold[0, 1]
+    # checked at every level it reached and no further: the levels below its threshold (all held) and,
+    # where a hold criterion (not a missing equilibrium) failed, the level that failed it
+    lost_by_check = res.failure[0, 0] != GraspFailure.NO_EQUILIBRIUM
+    assert len(first) == int(np.floor(res.threshold[0, 0] / step)) + int(lost_by_check)
+    assert all(first[:-1]) and first[-1] != lost_by_check
+    assert len(events) - starts[1] - 1 <= settings.acceleration_steps
+    for name in ("threshold", "failure", "solver_status", "newton_iterations"):
+        assert np.array_equal(getattr(res, name), getattr(together, name), equal_nan=True), name
+    assert np.all(res.newton_iterations > 0)
 
 
 def test_angular_acceleration_thresholds_are_symmetric(experiments):
@@ -373,31 +382,85 @@ def two_grasps(box):
     return sample_antipodal_grasps(box, 2, rotations_per_axis=1, seed=3)
 
 
-def test_shared_squeeze_gives_the_results_of_squeezing_every_replica(box, two_grasps, monkeypatch):
-    """The G grasps are squeezed once and copied to their replicas (one per direction): the linear ramp's
-    thresholds, failures, statuses and Newton iterations equal bit for bit those of solvers that squeezed
-    every replica, and the squeeze runs once per GraspExperiments."""
+def _acceleration_stepwise(ex: GraspExperiments, kind: str, dirs) -> tuple:
+    """The acceleration test as it was before the pairs were streamed and the squeeze shared: a batch of
+    every grasp x direction replica, each squeezed itself, loaded step by step with solve() (every problem
+    waits for the batch at each step; a pair whose hold failed keeps its load)."""
+    s = ex.settings
+    dirs = np.asarray(dirs, dtype=np.float64)
+    D, G = len(dirs), ex.num_grasps
+    limit = s.max_linear_acceleration if kind == "linear" else s.max_angular_acceleration
+    solver, reference, closing, rows = _squeeze_every_replica(ex, D, kind)
+    world = np.einsum("gij,dj->gdi", ex.grasps.poses[:, :3, :3], dirs).reshape(G * D, 3)
+    center = ex.finger_frames[:, :, :3, 3].mean(axis=1)[rows]
+    held = reference.converged.copy()
+    failure = np.where(held, GraspFailure.HELD, GraspFailure.NOT_GRASPED).astype(np.int64)
+    threshold = np.where(held, limit, np.nan)
+    level, margin, newton = np.zeros(G * D), np.ones(G * D), np.zeros(G * D, dtype=np.int64)
+    for k in range(1, s.acceleration_steps + 1):
+        target = limit * k / s.acceleration_steps
+        previous = level.copy()
+        level = np.where(held, target, level)
+        vec = level[:, None] * world
+        load = (
+            fem.BodyLoad(linear_acceleration=vec)
+            if kind == "linear"
+            else fem.BodyLoad(angular_acceleration=vec, rotation_center=center)
+        )
+        eq = solver.solve(body_load=load)
+        newton += eq.newton_iterations
+        hs = ex._hold(eq, reference, closing, ex.pickup_force)
+        newly = held & ~hs.held
+        no_eq = newly & (hs.failure == GraspFailure.NO_EQUILIBRIUM)
+        threshold[no_eq] = previous[no_eq] + eq.load_fraction[no_eq] * (target - previous[no_eq])
+        other = newly & ~no_eq
+        with np.errstate(invalid="ignore", divide="ignore"):
+            t = np.clip(margin / (margin - hs.margin), 0.0, 1.0)
+        threshold[other] = (previous + np.nan_to_num(t, nan=0.0) * (target - previous))[other]
+        failure[newly] = hs.failure[newly]
+        held &= hs.held
+        margin = np.where(held, hs.margin, margin)
+    shape = (G, D)
+    return (
+        threshold.reshape(shape),
+        failure.reshape(shape),
+        solver.status.reshape(shape),
+        newton.reshape(shape),
+    )
+
+
+@pytest.mark.parametrize("kind", ["linear", "angular"])
+def test_streamed_pairs_give_the_stepwise_batch_of_self_squeezed_replicas(box, two_grasps, monkeypatch, kind):
+    """The G grasps are squeezed once and each (grasp, direction) pair streams its load steps from a copy
+    of that state: thresholds, failures, solver statuses and Newton iterations equal bit for bit those of
+    one batch of self-squeezed replicas stepped together (a lost pair spends no iteration after its loss),
+    for 1 and 2 directions per solver; the squeeze runs once per GraspExperiments."""
     from defgraspnets.grasp import experiments as exp_module
 
     settings = ExperimentSettings(acceleration_steps=4, squeeze_steps=3)
-    dirs = [[1.0, 0, 0], [0, 1.0, 0], [0, 0, -1.0]]
-    shared = GraspExperiments(box, two_grasps, MATERIAL, settings, device="cpu", directions_per_solver=2)
+    dirs = (
+        [[1.0, 0, 0], [0, 1.0, 0], [0, 0, -1.0]]
+        if kind == "linear"
+        else [[0, 1.0, 0], [0, 0, 1.0], [1.0, 0, 0]]
+    )
     ramps = []
     real_ramp = exp_module.squeeze_ramp
     monkeypatch.setattr(
         exp_module, "squeeze_ramp", lambda s, *a, **k: ramps.append(s.batch_size) or real_ramp(s, *a, **k)
     )
-    new = shared.acceleration("linear", dirs)
-    assert ramps == [2]  # one squeeze of the 2 grasps for the two solvers (2 + 1 directions)
-    again = shared.acceleration("linear", dirs[:1])
-    assert ramps == [2]
-    monkeypatch.setattr(GraspExperiments, "_squeezed", _squeeze_every_replica)
-    old_ex = GraspExperiments(box, two_grasps, MATERIAL, settings, device="cpu", directions_per_solver=2)
-    old = old_ex.acceleration("linear", dirs)
-    for name in ("threshold", "failure", "solver_status", "newton_iterations"):
-        assert np.array_equal(getattr(new, name), getattr(old, name), equal_nan=True), name
-        assert np.array_equal(getattr(again, name), getattr(old, name)[:, :1], equal_nan=True), name
+    shared = GraspExperiments(box, two_grasps, MATERIAL, settings, device="cpu", directions_per_solver=2)
+    new = shared.acceleration(kind, dirs)
+    again = shared.acceleration(kind, dirs[:1])
+    assert ramps == [2]  # one squeeze of the 2 grasps for both tests
+    single = GraspExperiments(box, two_grasps, MATERIAL, settings, device="cpu", directions_per_solver=1)
+    alone = single.acceleration(kind, dirs)
+    old = _acceleration_stepwise(single, kind, dirs)
+    for name, want in zip(("threshold", "failure", "solver_status", "newton_iterations"), old):
+        assert np.array_equal(getattr(new, name), want, equal_nan=True), name
+        assert np.array_equal(getattr(alone, name), want, equal_nan=True), name
+        assert np.array_equal(getattr(again, name), want[:, :1], equal_nan=True), name
     assert np.all(new.newton_iterations > 0)
+    assert (new.failure != GraspFailure.HELD).any()  # some pair is lost within the limit
 
 
 def test_shared_squeeze_gives_the_same_reorientation_and_pickup(box, two_grasps, monkeypatch):

@@ -867,7 +867,8 @@ def generate_object_shards(
         experiment_settings: :class:`ExperimentSettings` (or a mapping of its fields but ``friction``); their
             friction is ``friction``. None: the defaults (thesis values).
         experiment_options: FEM settings of the experiments (default :func:`experiment_solver_options`).
-        directions_per_solver: acceleration directions batched in one solver (:class:`GraspExperiments`).
+        directions_per_solver: the acceleration pairs stream through grasps x this many problems
+            (:class:`GraspExperiments`).
         moduli_per_solver: the squeeze ramps of this many moduli run as one batch (one problem per grasp and
             modulus, each with its own material): fewer, larger launches on a GPU. A problem's ramp does not
             depend on its batch with an exact linear solver ("direct", "dense"), so the data are the same;

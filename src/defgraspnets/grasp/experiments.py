@@ -467,11 +467,11 @@ class GraspExperiments:
         device: Warp device of the FEM.
         options: solver options (default :func:`experiment_solver_options`).
         progress: tqdm bars over the load steps.
-        directions_per_solver: acceleration directions batched in one solver (with all grasps). The problems
-            of a solver wait for its slowest, and the load step in which a grasp is lost costs the most Newton
-            iterations: on CPU one direction per solver is fastest (measured, linear test of 2 grasps x 16
-            directions on the 125-vertex box, 2 CPU cores: 34 / 37 / 42 s with 1 / 2 / 4 directions per
-            solver, identical thresholds); on a GPU larger batches should pay off (not measured).
+        directions_per_solver: the acceleration tests stream their (grasp, direction) pairs through one
+            solver of G x ``directions_per_solver`` problems (a problem whose pair has lost its grasp takes
+            the next pair: the batch does not wait for its slowest direction at every load step). The
+            thresholds do not depend on it with the exact linear solvers; CPU: 1 (the solver factors one
+            problem at a time anyway), GPU: 16 (one H200: README, "DefGraspSim experiments").
     """
 
     def __init__(
@@ -705,66 +705,91 @@ class GraspExperiments:
             if np.any(norms < 1e-12):
                 raise ValueError("directions must be non-zero vectors")
             dirs = dirs / norms
-        chunks = [
-            dirs[i : i + self.directions_per_solver] for i in range(0, len(dirs), self.directions_per_solver)
-        ]
-        parts = [self._acceleration_ramp(kind, c, limit) for c in self._bar(chunks, f"{kind} acceleration")]
-        threshold = np.concatenate([p[0] for p in parts], axis=1)
+        threshold, failure, status, newton = self._acceleration_stream(kind, dirs, limit)
         return AccelerationResult(
             kind=kind,
             grasp_force=self.pickup_force,
             directions=dirs,
             limit=limit,
             threshold=threshold,
-            failure=np.concatenate([p[1] for p in parts], axis=1),
-            solver_status=np.concatenate([p[2] for p in parts], axis=1),
+            failure=failure,
+            solver_status=status,
             instability=met.instability(threshold, limit),
-            newton_iterations=np.concatenate([p[3] for p in parts], axis=1),
+            newton_iterations=newton,
         )
 
-    def _acceleration_ramp(self, kind: str, dirs: np.ndarray, limit: float):
+    def _acceleration_stream(self, kind: str, dirs: np.ndarray, limit: float):
         """(G, D) thresholds, failures, solver statuses and Newton iterations of the G grasps along the D
-        directions ``dirs``, in one solver."""
+        directions ``dirs``. Every (grasp, direction) pair of a formed grasp is one job of
+        ``acceleration_steps`` load levels, streamed (:meth:`fem.QuasiStaticSolver.solve_stream`) through
+        G x ``directions_per_solver`` problems: a job starts from its grasp's squeezed state and stops where
+        the grasp is lost, and its problem takes the next job at once, so no problem waits at every load
+        step for the batch's slowest direction (each job's states are those of solving its steps one by
+        one from the squeezed state)."""
         s = self.settings
         D, G = len(dirs), self.num_grasps
-        solver, reference, closing, rows = self._squeezed(D, kind)
-        # directions fixed in the gripper frame, expressed in the object frame; problem b = grasp * D + dir
+        squeezed, reference = self._squeeze()
+        # job = grasp * D + direction; directions fixed in the gripper frame, expressed in the object frame
+        grasp_of = np.repeat(np.arange(G), D)
         world = np.einsum("gij,dj->gdi", self.grasps.poses[:, :3, :3], dirs).reshape(G * D, 3)
-        center = self.finger_frames[:, :, :3, 3].mean(axis=1)[rows]  # midpoint of the contact faces
-        held = reference.converged.copy()
-        failure = np.where(held, GraspFailure.HELD, GraspFailure.NOT_GRASPED).astype(np.int64)
-        threshold = np.where(held, limit, np.nan)
-        level = np.zeros(G * D)  # current acceleration per problem (lost problems keep theirs)
-        margin = np.ones(G * D)  # hold margin at the last step held (module docstring: criteria 2 and 3)
-        newton = np.zeros(G * D, dtype=np.int64)
-        for k in range(1, s.acceleration_steps + 1):
-            target = limit * k / s.acceleration_steps
-            previous = level.copy()
-            level = np.where(held, target, level)
-            vec = level[:, None] * world
+        center = self.finger_frames[:, :, :3, 3].mean(axis=1)  # midpoint of the contact faces, per grasp
+        closing = self.finger_frames[:, :, :3, 1]  # (G, 2, 3)
+        levels = limit * np.arange(1, s.acceleration_steps + 1) / s.acceleration_steps
+
+        def load(j: int, a: float) -> fem.BodyLoad:
             if kind == "linear":
-                load = fem.BodyLoad(linear_acceleration=vec)
-            else:
-                load = fem.BodyLoad(angular_acceleration=vec, rotation_center=center)
-            eq = solver.solve(body_load=load)
-            newton += eq.newton_iterations
-            hs = self._hold(eq, reference, closing, self.pickup_force)
-            newly = held & ~hs.held
-            no_eq = newly & (hs.failure == GraspFailure.NO_EQUILIBRIUM)
-            # the solver's bisection locates a missing equilibrium within the step; where a hold criterion
-            # fails, the hold margin is interpolated linearly to zero between the last state held and this one
-            threshold[no_eq] = previous[no_eq] + eq.load_fraction[no_eq] * (target - previous[no_eq])
-            other = newly & ~no_eq
+                return fem.BodyLoad(linear_acceleration=a * world[j])
+            return fem.BodyLoad(angular_acceleration=a * world[j], rotation_center=center[grasp_of[j]])
+
+        formed = reference.converged[grasp_of]
+        threshold = np.where(formed, limit, np.nan)
+        failure = np.where(formed, GraspFailure.HELD, GraspFailure.NOT_GRASPED).astype(np.int64)
+        status = squeezed.status[grasp_of].copy()  # the squeeze's flag where no grasp was formed
+        newton = np.zeros(G * D, dtype=np.int64)
+        margin = np.ones(G * D)  # hold margin at the last level held (module docstring: criteria 2 and 3)
+        todo = np.flatnonzero(formed)
+        if todo.size == 0:
+            return tuple(a.reshape(G, D) for a in (threshold, failure, status, newton))
+
+        def below(k: np.ndarray) -> np.ndarray:
+            """The acceleration of the level before each level k (0 before the first)."""
+            return np.where(k > 0, levels[np.maximum(k - 1, 0)], 0.0)
+
+        def held(ids, ks, part):
+            j = todo[ids]
+            g = grasp_of[j]
+            hs = self._hold(part, reference.take(g), closing[g], self.pickup_force)
+            lost = ~hs.held
+            # a hold criterion failed: the margin interpolated linearly to zero between the last level held
+            # and this one
             with np.errstate(invalid="ignore", divide="ignore"):
-                t = np.clip(margin / (margin - hs.margin), 0.0, 1.0)
-            threshold[other] = (previous + np.nan_to_num(t, nan=0.0) * (target - previous))[other]
-            failure[newly] = hs.failure[newly]
-            held &= hs.held
-            margin = np.where(held, hs.margin, margin)
-            if not held.any():
-                break
-        status = solver.status.reshape(G, D).copy()
-        return threshold.reshape(G, D), failure.reshape(G, D), status, newton.reshape(G, D)
+                t = np.clip(margin[j] / (margin[j] - hs.margin), 0.0, 1.0)
+            prev = below(ks)
+            threshold[j[lost]] = (prev + np.nan_to_num(t, nan=0.0) * (levels[ks] - prev))[lost]
+            failure[j[lost]] = hs.failure[lost]
+            margin[j[~lost]] = hs.margin[~lost]
+            return np.where(lost, fem.SolveStatus.ESCAPED, fem.SolveStatus.CONVERGED)
+
+        def reached(ids, ks, part):
+            j = todo[ids]
+            newton[j] += part.newton_iterations
+            # no equilibrium (flagged by the solver, first report): located by its bisection in the step
+            none = ~part.converged & (failure[j] == GraspFailure.HELD)
+            if none.any():
+                jj, kk = j[none], ks[none]
+                prev = below(kk)
+                threshold[jj] = prev + part.load_fraction[none] * (levels[kk] - prev)
+                failure[jj] = GraspFailure.NO_EQUILIBRIUM
+                status[jj] = part.status[none]
+
+        def begin(problems, ids):
+            solver.copy_state_from(squeezed, rows=grasp_of[todo[ids]], into=problems)
+
+        slots = min(todo.size, G * self.directions_per_solver)
+        solver = self._solver(grasp_of[todo[:slots]])
+        jobs = [[{"body_load": load(int(j), a)} for a in levels] for j in todo]
+        solver.solve_stream(jobs, begin, reached, check=held, progress=self.progress)
+        return tuple(a.reshape(G, D) for a in (threshold, failure, status, newton))
 
     def run(self, experiments=("pickup", "reorientation", "linear", "angular")) -> GraspExperimentResults:
         """Run the named experiments (pickup always runs: it gives the features and F_slip)."""
