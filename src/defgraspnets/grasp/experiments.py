@@ -633,7 +633,9 @@ class GraspExperiments:
 
     def reorientation(self, grasp_force) -> ReorientationResult:
         """Squeeze to F_p, raise to ``grasp_force`` (F_slip, (G,) [N]), pick up, then turn gravity about
-        each axis through the J angles; fields per state."""
+        each axis through the J angles; fields per state. Every (grasp, axis) pair is one job of load levels
+        streamed through G x ``directions_per_solver`` problems (as the acceleration tests' pairs): a pair
+        stops where its grasp is lost, and its problem takes the next pair."""
         s = self.settings
         G, N = self.num_grasps, self.mesh.num_vertices
         F = np.broadcast_to(np.asarray(grasp_force, dtype=np.float64), (G,)).copy()
@@ -642,35 +644,69 @@ class GraspExperiments:
         axes = sphere_directions(s.num_directions)
         A, J, sub = len(axes), s.reorientation_angles, s.reorientation_substeps
         angles = np.pi * np.arange(1, J + 1) / J
-        solver, _, closing, rows = self._squeezed(A, "reorientation")
-        force = F[rows]
-        reference = solver.solve(targets={GRIP_DOF: force})
-        held = reference.converged.copy()
-        failure = np.where(held, GraspFailure.HELD, GraspFailure.NOT_GRASPED).astype(np.int64)
-        self._gravity_ramp(solver, reference, closing, force, held, failure, "reorientation pickup")
+        squeezed, _ = self._squeeze()
+        closing = self.finger_frames[:, :, :3, 1]  # (G, 2, 3)
         fine = np.pi * np.arange(1, J * sub + 1) / (J * sub)
         gravity = reorientation_gravity(axes, fine, s.gravity)  # (A, J * sub, 3)
+        P = s.pickup_steps
+        # job b = grasp * A + axis, from its grasp's squeezed state: level 0 raises the grip to F_slip (the
+        # hold reference), levels 1..P pick up (gravity 0 -> g), then the J * sub reorientation sub-steps
+        grasp_of = np.repeat(np.arange(G), A)
+        pickup = [
+            {"body_load": fem.BodyLoad(gravity=(0.0, 0.0, -s.gravity * k / P))} for k in range(1, P + 1)
+        ]
+        jobs = [
+            [{GRIP_DOF: float(F[grasp_of[b]])}, *pickup]
+            + [{"body_load": fem.BodyLoad(gravity=gravity[b % A, step])} for step in range(J * sub)]
+            for b in range(G * A)
+        ]
         held_state = np.zeros((G * A, J), dtype=bool)
+        failure = np.full(G * A, GraspFailure.HELD, dtype=np.int64)
         positions = np.full((G * A, J, N, 3), np.nan)
         vm = np.full((G * A, J, N), np.nan)
         deformation = np.full((G * A, J, N), np.nan)
         peak = np.full((G * A, J), np.nan)
-        for step in self._bar(range(J * sub), "reorientation"):
-            g = np.tile(gravity[:, step], (G, 1))  # problem b = grasp * A + axis
-            eq = solver.solve(body_load=fem.BodyLoad(gravity=g))
-            hs = self._hold(eq, reference, closing, force)
-            newly = held & ~hs.held
-            failure[newly] = hs.failure[newly]
-            held &= hs.held
-            if (step + 1) % sub == 0:
-                j = (step + 1) // sub - 1
-                held_state[:, j] = held
-                d = met.rigid_removed_deformation(self.mesh.points, eq.positions, self.masses)
+        reference = []  # [the (G A)-problem equilibrium at F_slip], filled as the jobs reach it
+
+        def held(ids, ks, part):
+            codes = np.full(len(ids), fem.SolveStatus.CONVERGED)
+            raised = np.flatnonzero(ks == 0)
+            if raised.size:
+                if not reference:
+                    reference.append(part.take(np.zeros(G * A, dtype=np.int64)))
+                reference[0].put(ids[raised], part.take(raised))
+            loaded = np.flatnonzero(ks > 0)
+            if loaded.size:
+                b = ids[loaded]
+                g = grasp_of[b]
+                hs = self._hold(part.take(loaded), reference[0].take(b), closing[g], F[g])
+                failure[b[~hs.held]] = hs.failure[~hs.held]
+                codes[loaded[~hs.held]] = fem.SolveStatus.ESCAPED
+            return codes
+
+        def reached(ids, ks, part):
+            # the first report of a job the solver flagged: no grasp at F_slip, or no equilibrium later
+            flagged = ~part.converged & (failure[ids] == GraspFailure.HELD)
+            failure[ids[flagged & (ks == 0)]] = GraspFailure.NOT_GRASPED
+            failure[ids[flagged & (ks > 0)]] = GraspFailure.NO_EQUILIBRIUM
+            step = ks - 1 - P  # reorientation sub-step
+            done = np.flatnonzero(part.converged & (step >= 0) & ((step + 1) % sub == 0))
+            if done.size:  # an angle reached and held: its fields
+                b, j = ids[done], (step[done] + 1) // sub - 1
+                eq = part.take(done)
                 stress = eq.tet_stress if eq.tet_stress is not None else eq.vertex_stress
-                positions[held, j] = eq.positions[held]
-                vm[held, j] = eq.von_mises[held]
-                deformation[held, j] = d[held]
-                peak[held, j] = met.max_von_mises_stress(stress)[held]
+                held_state[b, j] = True
+                positions[b, j] = eq.positions
+                vm[b, j] = eq.von_mises
+                deformation[b, j] = met.rigid_removed_deformation(self.mesh.points, eq.positions, self.masses)
+                peak[b, j] = met.max_von_mises_stress(stress)
+
+        def begin(problems, ids):
+            solver.copy_state_from(squeezed, rows=grasp_of[ids], into=problems)
+
+        slots = min(G * A, G * self.directions_per_solver)
+        solver = self._solver(grasp_of[:slots])
+        solver.solve_stream(jobs, begin, reached, check=held, progress=self.progress)
         positions = positions.reshape(G, A * J, N, 3)
         return ReorientationResult(
             grasp_force=F,
