@@ -566,6 +566,19 @@ class GraspExperiments:
         s = self.settings
         return hold_state(eq, reference, closing, force, s.max_slide, s.min_finger_force_fraction)
 
+    def _stream_pairs(self, grasp_of: np.ndarray, jobs: list, reached, check) -> None:
+        """Stream ``jobs`` (job i: load levels from the squeezed state of grasp ``grasp_of[i]``) through
+        G x ``directions_per_solver`` problems (:meth:`fem.QuasiStaticSolver.solve_stream`; ``reached`` and
+        ``check`` as its ``on_levels`` and ``check``): a problem whose job ended or was flagged takes the
+        next job at once."""
+        squeezed, _ = self._squeeze()
+        solver = self._solver(grasp_of[: min(len(jobs), self.num_grasps * self.directions_per_solver)])
+
+        def begin(problems, ids):
+            solver.copy_state_from(squeezed, rows=grasp_of[ids], into=problems)
+
+        solver.solve_stream(jobs, begin, reached, check=check, progress=self.progress)
+
     def _gravity_ramp(self, solver, reference, closing, force, held, failure, desc):
         """Ramp gravity 0 -> (0, 0, -g) in pickup_steps; update held/failure in place; last equilibrium."""
         s = self.settings
@@ -644,7 +657,6 @@ class GraspExperiments:
         axes = sphere_directions(s.num_directions)
         A, J, sub = len(axes), s.reorientation_angles, s.reorientation_substeps
         angles = np.pi * np.arange(1, J + 1) / J
-        squeezed, _ = self._squeeze()
         closing = self.finger_frames[:, :, :3, 1]  # (G, 2, 3)
         fine = np.pi * np.arange(1, J * sub + 1) / (J * sub)
         gravity = reorientation_gravity(axes, fine, s.gravity)  # (A, J * sub, 3)
@@ -701,12 +713,7 @@ class GraspExperiments:
                 deformation[b, j] = met.rigid_removed_deformation(self.mesh.points, eq.positions, self.masses)
                 peak[b, j] = met.max_von_mises_stress(stress)
 
-        def begin(problems, ids):
-            solver.copy_state_from(squeezed, rows=grasp_of[ids], into=problems)
-
-        slots = min(G * A, G * self.directions_per_solver)
-        solver = self._solver(grasp_of[:slots])
-        solver.solve_stream(jobs, begin, reached, check=held, progress=self.progress)
+        self._stream_pairs(grasp_of, jobs, reached, held)
         positions = positions.reshape(G, A * J, N, 3)
         return ReorientationResult(
             grasp_force=F,
@@ -765,7 +772,7 @@ class GraspExperiments:
         s = self.settings
         D, G = len(dirs), self.num_grasps
         squeezed, reference = self._squeeze()
-        # job = grasp * D + direction; directions fixed in the gripper frame, expressed in the object frame
+        # pair = grasp * D + direction; directions fixed in the gripper frame, expressed in the object frame
         grasp_of = np.repeat(np.arange(G), D)
         world = np.einsum("gij,dj->gdi", self.grasps.poses[:, :3, :3], dirs).reshape(G * D, 3)
         center = self.finger_frames[:, :, :3, 3].mean(axis=1)  # midpoint of the contact faces, per grasp
@@ -818,13 +825,8 @@ class GraspExperiments:
                 failure[jj] = GraspFailure.NO_EQUILIBRIUM
                 status[jj] = part.status[none]
 
-        def begin(problems, ids):
-            solver.copy_state_from(squeezed, rows=grasp_of[todo[ids]], into=problems)
-
-        slots = min(todo.size, G * self.directions_per_solver)
-        solver = self._solver(grasp_of[todo[:slots]])
         jobs = [[{"body_load": load(int(j), a)} for a in levels] for j in todo]
-        solver.solve_stream(jobs, begin, reached, check=held, progress=self.progress)
+        self._stream_pairs(grasp_of[todo], jobs, reached, held)
         return tuple(a.reshape(G, D) for a in (threshold, failure, status, newton))
 
     def run(self, experiments=("pickup", "reorientation", "linear", "angular")) -> GraspExperimentResults:
