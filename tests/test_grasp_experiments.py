@@ -526,6 +526,26 @@ def test_shared_squeeze_gives_the_same_reorientation_and_pickup(box, two_grasps,
     assert np.array_equal(r_new.deformation[g, a, k], deformation[0])
 
 
+def test_a_grasp_whose_squeeze_failed_is_not_grasped_in_every_pair(box, two_grasps):
+    """A grasp with no equilibrium at F_p (flagged by its squeeze) is NOT_GRASPED on every axis and
+    direction, records no state and no threshold, and the other grasp's pairs are unaffected."""
+    settings = ExperimentSettings(num_directions=2, reorientation_angles=2, squeeze_steps=3, pickup_steps=2)
+    ex = GraspExperiments(box, two_grasps, MATERIAL, settings, device="cpu")
+    good_r = ex.reorientation(ex.pickup_force)
+    good_a = ex.acceleration("linear", [[1.0, 0, 0]])
+    squeezed, at_fp = ex._squeeze()  # the cached squeeze: as if grasp 1's had failed
+    squeezed.status[1] = at_fp.status[1] = fem.SolveStatus.NOT_CONVERGED
+    r = ex.reorientation(ex.pickup_force)
+    a = ex.acceleration("linear", [[1.0, 0, 0]])
+    assert np.all(r.failure[1] == GraspFailure.NOT_GRASPED) and not r.held[1].any()
+    assert np.all(np.isnan(r.positions[1]))
+    assert a.failure[1, 0] == GraspFailure.NOT_GRASPED and np.isnan(a.threshold[1, 0])
+    assert a.solver_status[1, 0] == fem.SolveStatus.NOT_CONVERGED
+    for name in ("held", "failure", "positions", "von_mises"):
+        assert np.array_equal(getattr(r, name)[0], getattr(good_r, name)[0], equal_nan=True), name
+    assert np.array_equal(a.threshold[0], good_a.threshold[0])
+
+
 # ---------------------------------------------------------------------------------------------- script
 def test_grasp_experiments_script(tmp_path):
     out = tmp_path / "out"

@@ -698,9 +698,10 @@ class GraspExperiments:
 
         def reached(ids, ks, part):
             # the first report of a job the solver flagged: no grasp at F_slip, or no equilibrium later
+            # (a job flagged before it began reports all its levels at once: level 0's code is the one)
             flagged = ~part.converged & (failure[ids] == GraspFailure.HELD)
-            failure[ids[flagged & (ks == 0)]] = GraspFailure.NOT_GRASPED
             failure[ids[flagged & (ks > 0)]] = GraspFailure.NO_EQUILIBRIUM
+            failure[ids[flagged & (ks == 0)]] = GraspFailure.NOT_GRASPED
             step = ks - 1 - P  # reorientation sub-step
             done = np.flatnonzero(part.converged & (step >= 0) & ((step + 1) % sub == 0))
             if done.size:  # an angle reached and held: its fields
