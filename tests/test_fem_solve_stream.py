@@ -166,6 +166,27 @@ def _moved_pads(solver: fem.QuasiStaticSolver, job: int, lift: float, angle: flo
     return {name: motion @ solver._poses[job, solver._body(name)] for name in ("left", "right")}
 
 
+def _stream_through_two(template: fem.QuasiStaticSolver, jobs: list, final_state):
+    """Stream ``jobs`` through two problems, job j starting from the template's problem j. Returns the
+    solver, {(job, level): equilibrium}, {job: final_state(solver, problem)} taken when the job reached its
+    last level (its problem still holds it), and the start and on_levels functions used."""
+    solver = _solver(OFFSETS[:2])
+    got, final, holder = {}, {}, {}
+
+    def start(problems, job_ids):
+        solver.copy_state_from(template, rows=job_ids, into=problems)
+        holder.update(zip(job_ids.tolist(), problems.tolist()))
+
+    def on_levels(job_ids, levels, part):
+        for i, (j, k) in enumerate(zip(job_ids.tolist(), levels.tolist())):
+            got[(j, k)] = _row(part, i)
+            if k == len(jobs[j]) - 1:
+                final[j] = final_state(solver, holder[j])
+
+    solver.solve_stream(jobs, start, on_levels)
+    return solver, got, final, start, on_levels
+
+
 def test_jobs_that_move_bodies_stream_as_solves_with_body_poses():
     """Levels with "body_poses" drag the contacts as solve(body_poses=...) does: five jobs (grip harder,
     lift the pads, lift and twist them) through two problems reach the equilibria of one batch solving
@@ -193,20 +214,9 @@ def test_jobs_that_move_bodies_stream_as_solves_with_body_poses():
         ]
         for j in range(5)
     ]
-    solver = _solver(OFFSETS[:2])
-    got, final, holder = {}, {}, {}
-
-    def start(problems, job_ids):
-        solver.copy_state_from(template, rows=job_ids, into=problems)
-        holder.update(zip(job_ids.tolist(), problems.tolist()))
-
-    def on_levels(job_ids, levels, part):
-        for i, (j, k) in enumerate(zip(job_ids.tolist(), levels.tolist())):
-            got[(j, k)] = _row(part, i)
-            if k == 2:  # its problem still holds job j: the pads' poses
-                final[j] = solver._poses[holder[j]].copy()
-
-    solver.solve_stream(jobs, start, on_levels)
+    solver, got, final, start, on_levels = _stream_through_two(
+        template, jobs, lambda solver, b: solver._poses[b].copy()
+    )
     for j in range(5):
         for k in range(3):
             _assert_same(_row(want[k], j), got[(j, k)])
@@ -253,21 +263,9 @@ def test_jobs_that_set_body_loads_stream_as_solves_with_body_load():
         ]
         for j in range(5)
     ]
-    template = _solver()
-    solver = _solver(OFFSETS[:2])
-    got, final, holder = {}, {}, {}
-
-    def start(problems, job_ids):
-        solver.copy_state_from(template, rows=job_ids, into=problems)
-        holder.update(zip(job_ids.tolist(), problems.tolist()))
-
-    def on_levels(job_ids, levels, part):
-        for i, (j, k) in enumerate(zip(job_ids.tolist(), levels.tolist())):
-            got[(j, k)] = _row(part, i)
-            if k == 3:
-                final[j] = {name: v[holder[j]].copy() for name, v in solver._load.arrays(2).items()}
-
-    solver.solve_stream(jobs, start, on_levels)
+    solver, got, final, start, on_levels = _stream_through_two(
+        _solver(), jobs, lambda solver, b: {name: v[b].copy() for name, v in solver._load.arrays(2).items()}
+    )
     for j in range(5):
         for k in range(4):
             _assert_same(_row(want[k], j), got[(j, k)])
