@@ -19,6 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 from defgraspnets import fem
 from defgraspnets.grasp.datagen import resolve_object_mesh
 from defgraspnets.grasp.diagnostics import (
+    NewtonTrace,
     self_intersection_summary,
     squeeze_state_geometry,
     travel_controlled_path,
@@ -50,8 +51,11 @@ def main(cfg: DictConfig) -> None:
     for g in [int(i) for i in cfg.grasps]:
         grasp = grasps[[g]]
         solver = make_squeeze_solver(mesh, grasp, material, 0.7, device="cpu", options=options)
+        trace = NewtonTrace(solver, scans=int(cfg.trace_scans)) if cfg.trace else None
         start = time.perf_counter()
         eqs = squeeze_ramp(solver, max_force, steps)
+        if trace is not None:
+            trace.close()
         status = [int(eq.status[0]) for eq in eqs]
         solved = [k for k, s in enumerate(status) if s == 0]
         failed = next((k for k, s in enumerate(status) if s != 0), None)
@@ -64,6 +68,8 @@ def main(cfg: DictConfig) -> None:
             "travel_mm": [float(eqs[k].travel[GRIP_DOF][0] * 1e3) for k in solved],
             "newton": [int(eq.newton_iterations[0]) for eq in eqs],
         }
+        if trace is not None:
+            r["trace"] = trace.records  # every Newton iteration of the ramp, in order
         if solved:
             last = eqs[solved[-1]]
             r["last"] = squeeze_state_geometry(
