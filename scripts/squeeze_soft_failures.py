@@ -51,7 +51,9 @@ def main(cfg: DictConfig) -> None:
     for g in [int(i) for i in cfg.grasps]:
         grasp = grasps[[g]]
         solver = make_squeeze_solver(mesh, grasp, material, 0.7, device="cpu", options=options)
-        trace = NewtonTrace(solver, scans=int(cfg.trace_scans)) if cfg.trace else None
+        trace = None
+        if cfg.trace:
+            trace = NewtonTrace(solver, scans=int(cfg.trace_scans), scan_after=int(cfg.trace_scan_after))
         start = time.perf_counter()
         eqs = squeeze_ramp(solver, max_force, steps)
         if trace is not None:
@@ -89,12 +91,16 @@ def main(cfg: DictConfig) -> None:
             reached = r["travel_mm"][-1] * 1e-3
             travels = list(np.linspace(0.0, reached, 21)[1:])
             travels += [reached + float(cfg.travel_step) * k for k in range(1, int(cfg.travel_continue) + 1)]
+            keep = {k: v for k, v in overrides.items() if k.startswith("self_contact")}  # the walk's too
             walk = squeeze_solver_options(
-                linear_solver="direct", force_maximum_runaway=0.0, max_newton_per_solve=400
+                linear_solver="direct", force_maximum_runaway=0.0, max_newton_per_solve=400, **keep
             )
             r["travel_path"] = travel_controlled_path(mesh, grasp, material, travels, options=walk)
             for row in r["travel_path"][20:]:
-                print(f"   travel {row['travel_mm']:.3f} mm: {row['force']:.3f} N, status {row['status']}")
+                print(f"   travel {row['travel_mm']:.3f} mm: {row['force']:.3f} N, status {row['status']}, "
+                      f"{row['newton']} Newton, {row.get('self_contact_pairs')} pairs, "
+                      f"{row.get('inside_beyond_contact_depth')} inside beyond the cap",
+                      flush=True)  # fmt: skip
         results.append(r)
         with open(cfg.out, "w") as f:  # after every grasp
             json.dump({"config": OmegaConf.to_container(cfg, resolve=True), "results": results}, f)

@@ -144,7 +144,8 @@ def travel_controlled_path(
 ) -> list[dict]:
     """Walk one grasp (a one-grasp ``GraspSet``) with both pads displacement-controlled to each of the
     increasing ``travels`` [m] in turn; stops at the first failed step. Returns per step ``travel_mm``,
-    ``force`` (the grip's total normal force [N]), ``status`` and ``newton`` iterations."""
+    ``force`` (the grip's total normal force [N]), ``status`` and ``newton`` iterations, and with
+    self-contact on, the state's ``self_intersection_summary`` (converged steps)."""
     bodies = [
         fem.RigidBody(name, pad_shape(), control=fem.Control.displacement((0.0, 1.0, 0.0), dof=GRIP_DOF),
                       friction=friction)
@@ -167,6 +168,8 @@ def travel_controlled_path(
         )
         if eq.status[0] != 0:
             break
+        if solver.options.self_contact > 0:
+            rows[-1].update(self_intersection_summary(mesh, mesh.points + eq.displacement[0], solver))
     return rows
 
 
@@ -229,15 +232,19 @@ class NewtonTrace:
     """Records every Newton iteration of ``solver`` (one problem): the line search's verdict and step, the
     residual (the solver's DEBUG log) and, after the step, the active self-contact pairs at the new state
     (the solver's model, and how many of them the "prism" rule would not hold), their largest penetration
-    and summed force; at the first ``scans`` failed line searches the energy along the rejected step
-    (``energy_along_newton_step``). ``records`` is a list of dicts, in order."""
+    and summed force; at the first ``scans`` failed line searches after the first ``scan_after`` iterations
+    the energy along the rejected step (``energy_along_newton_step``). ``records`` is a list of dicts, in
+    order."""
 
-    def __init__(self, solver: fem.QuasiStaticSolver, scans: int = 3, scan_points: int = 201):
+    def __init__(
+        self, solver: fem.QuasiStaticSolver, scans: int = 3, scan_points: int = 201, scan_after: int = 0
+    ):
         import logging
 
         from defgraspnets.fem.self_contact import SelfContact
 
         self.solver, self.records, self.scans, self.scan_points = solver, [], scans, scan_points
+        self.scan_after = scan_after
         self._residual = None
         self._prism = None
         if solver._self_contact is not None and solver._self_contact.model != "prism":
@@ -253,6 +260,7 @@ class NewtonTrace:
         self._handler = _Handler(logging.DEBUG)
         self._logger.addHandler(self._handler)
         self._logger.setLevel(logging.DEBUG)
+        self._logger.disabled = False  # hydra's disabled job logging turns off the loggers that exist
         self._original = solver._line_search
         solver._line_search = self._line_search
 
@@ -269,7 +277,7 @@ class NewtonTrace:
             "first_trial": float(first_trial[0]),
             "alpha": float(alpha[0]),
         }
-        if failed[0] == 1 and self.scans > 0:
+        if failed[0] == 1 and self.scans > 0 and len(self.records) >= self.scan_after:
             self.scans -= 1
             t = np.linspace(0.0, float(first_trial[0]), self.scan_points)
             total, contact = energy_along_newton_step(s, t)
