@@ -95,11 +95,13 @@ def main(cfg: DictConfig) -> None:
             walk = squeeze_solver_options(
                 linear_solver="direct", force_maximum_runaway=0.0, max_newton_per_solve=400, **keep
             )
-            r["travel_path"] = travel_controlled_path(mesh, grasp, material, travels, options=walk)
+            r["travel_path"] = travel_controlled_path(
+                mesh, grasp, material, travels, options=walk, trace=bool(cfg.trace)
+            )
             for row in r["travel_path"][20:]:
                 print(f"   travel {row['travel_mm']:.3f} mm: {row['force']:.3f} N, status {row['status']}, "
                       f"{row['newton']} Newton, {row.get('self_contact_pairs')} pairs, "
-                      f"{row.get('inside_beyond_contact_depth')} inside beyond the cap",
+                      f"{row.get('inside')} / {row.get('inside_beyond_contact_depth')} inside (beyond cap)",
                       flush=True)  # fmt: skip
         results.append(r)
         with open(cfg.out, "w") as f:  # after every grasp

@@ -141,11 +141,13 @@ def travel_controlled_path(
     friction: float = 0.7,
     options: fem.SolverOptions | None = None,
     device="cpu",
+    trace: bool = False,
 ) -> list[dict]:
     """Walk one grasp (a one-grasp ``GraspSet``) with both pads displacement-controlled to each of the
     increasing ``travels`` [m] in turn; stops at the first failed step. Returns per step ``travel_mm``,
-    ``force`` (the grip's total normal force [N]), ``status`` and ``newton`` iterations, and with
-    self-contact on, the state's ``self_intersection_summary`` (converged steps)."""
+    ``force`` (the grip's total normal force [N]), ``status`` and ``newton`` iterations, and the converged
+    state's ``self_intersection_summary`` (with self-contact on, its pairs too). ``trace``: each step's
+    ``NewtonTrace`` records under ``trace`` (energy scans of its first 3 failed line searches)."""
     bodies = [
         fem.RigidBody(name, pad_shape(), control=fem.Control.displacement((0.0, 1.0, 0.0), dof=GRIP_DOF),
                       friction=friction)
@@ -156,7 +158,10 @@ def travel_controlled_path(
     for i, name in enumerate(FINGER_NAMES):
         solver.set_body_pose(name, poses[:, i])
     rows = []
+    tracer = NewtonTrace(solver) if trace else None
     for target in travels:
+        if tracer is not None:
+            tracer.records, tracer.scans = [], 3
         eq = solver.solve(targets={GRIP_DOF: float(target)})
         rows.append(
             {
@@ -166,10 +171,14 @@ def travel_controlled_path(
                 "newton": int(eq.newton_iterations[0]),
             }
         )
+        if tracer is not None:
+            rows[-1]["trace"] = tracer.records
         if eq.status[0] != 0:
             break
-        if solver.options.self_contact > 0:
-            rows[-1].update(self_intersection_summary(mesh, mesh.points + eq.displacement[0], solver))
+        on = solver if solver.options.self_contact > 0 else None
+        rows[-1].update(self_intersection_summary(mesh, mesh.points + eq.displacement[0], on))
+    if tracer is not None:
+        tracer.close()
     return rows
 
 
@@ -276,6 +285,8 @@ class NewtonTrace:
             "line_search_failed": int(failed[0]),
             "first_trial": float(first_trial[0]),
             "alpha": float(alpha[0]),
+            # gradient . dq of the step (the line search's predicted slope, < 0: a descent direction)
+            "slope": float(s._step_stats.numpy()[0][0]),
         }
         if failed[0] == 1 and self.scans > 0 and len(self.records) >= self.scan_after:
             self.scans -= 1
