@@ -57,7 +57,11 @@ the Gauss-Newton Hessian are those above with w the closed triangle's weights (s
 kinks. Left discontinuous: a corner (c_f a vertex of f) where the test of f's two edge neighbours
 disagrees with the rest of the corner's fan (a saddle-shaped corner; behind a concave corner all agree), an
 edge without exactly one other triangle (non-manifold), and, as for "prism", the candidate set's changes
-between Newton iterations and the depth cap. There is no edge-edge term.
+between Newton iterations and the depth cap. There is no edge-edge term. Measured
+(``benchmarks/fem_self_contact_cpu.md``, session 43): worse than "prism" where it matters, hence not the
+default: its local inside / outside test still flips for a vertex 0.4-0.5 h from the other surface (a jump
+of E_n(1-2 mm) that stalled the line search), and it failed the thin ring's squeeze where the walls meet
+(2.4 N; "prism": 15 N); on the soft cuboid neither carries the fold past the force maximum.
 
 Candidates. Once per Newton iteration (at assembly, from the deformed state) each surface vertex gets up to
 ``SELF_CONTACT_CANDIDATES`` nearest triangles, kept for that iteration's line search, so the energies

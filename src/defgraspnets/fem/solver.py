@@ -366,7 +366,9 @@ class SolverOptions:
             vertex; "feature": the distance to the nearest candidate triangle, closed (edges and corners),
             that the vertex lies behind at its closest point and behind the triangles across the edges that
             point lies on (continuous across triangle boundaries: a vertex in the wedge behind a concave
-            crease is held at its distance from the crease, where "prism" lets it go).
+            crease is held at its distance from the crease, where "prism" lets it go). Measured worse
+            than "prism" on the data path's folding and collapsing objects (benchmarks/
+            fem_self_contact_cpu.md, session 43): an option, not the default.
     """
 
     contact_stiffness: float = 1000.0

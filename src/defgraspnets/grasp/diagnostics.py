@@ -241,9 +241,10 @@ class NewtonTrace:
     """Records every Newton iteration of ``solver`` (one problem): the line search's verdict and step, the
     residual (the solver's DEBUG log) and, after the step, the active self-contact pairs at the new state
     (the solver's model, and how many of them the "prism" rule would not hold), their largest penetration
-    and summed force; at the first ``scans`` failed line searches after the first ``scan_after`` iterations
-    the energy along the rejected step (``energy_along_newton_step``). ``records`` is a list of dicts, in
-    order."""
+    and summed force; at the first ``scans`` failed line searches (or steps cut below 1e-6 of the first
+    trial) after the first ``scan_after`` iterations the energy along the tried step
+    (``energy_along_newton_step``; after an accepted vanishing step, from the new state). ``records`` is
+    a list of dicts, in order."""
 
     def __init__(
         self, solver: fem.QuasiStaticSolver, scans: int = 3, scan_points: int = 201, scan_after: int = 0
@@ -288,7 +289,8 @@ class NewtonTrace:
             # gradient . dq of the step (the line search's predicted slope, < 0: a descent direction)
             "slope": float(s._step_stats.numpy()[0][0]),
         }
-        if failed[0] == 1 and self.scans > 0 and len(self.records) >= self.scan_after:
+        stalled = failed[0] == 1 or alpha[0] < 1e-6 * first_trial[0]  # rejected, or a vanishing step
+        if stalled and self.scans > 0 and len(self.records) >= self.scan_after:
             self.scans -= 1
             t = np.linspace(0.0, float(first_trial[0]), self.scan_points)
             total, contact = energy_along_newton_step(s, t)
