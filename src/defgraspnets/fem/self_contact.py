@@ -52,16 +52,18 @@ crease c_f is on the crease edge and pen the distance from it, equal to the dept
 prism boundaries: continuous. Beside a convex edge or rim the vertex is in front of the triangle across the
 edge (outside the object): not held, as with "prism". The closest point is stationary, so the gradient and
 the Gauss-Newton Hessian are those above with w the closed triangle's weights (some 0) and n = -(x_v - c_f) /
-|x_v - c_f|. Where the acting triangle switches, both distances are equal or the other is the smaller one
-(the min of continuous functions): within a Newton iteration's candidates the energy is continuous, with
-kinks. Left discontinuous: a corner (c_f a vertex of f) where the test of f's two edge neighbours
-disagrees with the rest of the corner's fan (a saddle-shaped corner; behind a concave corner all agree), an
-edge without exactly one other triangle (non-manifold), and, as for "prism", the candidate set's changes
-between Newton iterations and the depth cap. There is no edge-edge term. Measured
-(``benchmarks/fem_self_contact_cpu.md``, session 43): worse than "prism" where it matters, hence not the
-default: its local inside / outside test still flips for a vertex 0.4-0.5 h from the other surface (a jump
-of E_n(1-2 mm) that stalled the line search), and it failed the thin ring's squeeze where the walls meet
-(2.4 N; "prism": 15 N); on the soft cuboid neither carries the fold past the force maximum.
+|x_v - c_f|. Where the acting triangle switches at an edge, both distances are equal or the other is the
+smaller one, so for a vertex close to a surface whose triangles' planes describe it (the crease of the
+tests) the energy is continuous, with kinks. It is not in general: the test extends single triangles'
+planes to the vertex, and for a vertex a sizeable fraction of h from a curved or creased surface a plane's
+side can flip while the distance is still large; also at a corner (c_f a vertex of f) only f's two edge
+neighbours are tested, not the rest of the corner's fan; an edge without exactly one other triangle
+(non-manifold) holds nothing beyond it; and, as for "prism", the candidate set changes between Newton
+iterations and at the depth cap. There is no edge-edge term. Measured (``benchmarks/fem_self_contact_cpu.md``,
+session 43): worse than "prism" where it matters, hence not the default: the flips occurred for vertices
+0.4-0.5 h from the other surface (jumps of E_n(1-2 mm) that stalled the line search), and it failed the thin
+ring's squeeze where the walls meet (2.4 N; "prism": 15 N); on the soft cuboid neither carries the fold past
+the force maximum.
 
 Candidates. Once per Newton iteration (at assembly, from the deformed state) each surface vertex gets up to
 ``SELF_CONTACT_CANDIDATES`` nearest triangles, kept for that iteration's line search, so the energies
