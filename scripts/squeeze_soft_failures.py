@@ -92,10 +92,9 @@ def main(cfg: DictConfig) -> None:
             travels = list(np.linspace(0.0, reached, 21)[1:])
             travels += [reached + float(cfg.travel_step) * k for k in range(1, int(cfg.travel_continue) + 1)]
             keep = {k: v for k, v in overrides.items() if k.startswith("self_contact")}  # the walk's too
-            keep.update(OmegaConf.to_container(cfg.travel_solver, resolve=True) or {})
-            walk = squeeze_solver_options(
-                linear_solver="direct", force_maximum_runaway=0.0, max_newton_per_solve=400, **keep
-            )
+            walk = {"force_maximum_runaway": 0.0, "max_newton_per_solve": 400, **keep}
+            walk.update(OmegaConf.to_container(cfg.travel_solver, resolve=True) or {})
+            walk = squeeze_solver_options(linear_solver="direct", **walk)
             r["travel_path"] = travel_controlled_path(
                 mesh, grasp, material, travels, options=walk, trace=bool(cfg.trace)
             )
