@@ -19,6 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 from defgraspnets import fem
 from defgraspnets.grasp.datagen import resolve_object_mesh
 from defgraspnets.grasp.diagnostics import (
+    NewtonTrace,
     self_intersection_summary,
     squeeze_state_geometry,
     travel_controlled_path,
@@ -50,8 +51,13 @@ def main(cfg: DictConfig) -> None:
     for g in [int(i) for i in cfg.grasps]:
         grasp = grasps[[g]]
         solver = make_squeeze_solver(mesh, grasp, material, 0.7, device="cpu", options=options)
+        trace = None
+        if cfg.trace:
+            trace = NewtonTrace(solver, scans=int(cfg.trace_scans), scan_after=int(cfg.trace_scan_after))
         start = time.perf_counter()
         eqs = squeeze_ramp(solver, max_force, steps)
+        if trace is not None:
+            trace.close()
         status = [int(eq.status[0]) for eq in eqs]
         solved = [k for k, s in enumerate(status) if s == 0]
         failed = next((k for k, s in enumerate(status) if s != 0), None)
@@ -64,6 +70,8 @@ def main(cfg: DictConfig) -> None:
             "travel_mm": [float(eqs[k].travel[GRIP_DOF][0] * 1e3) for k in solved],
             "newton": [int(eq.newton_iterations[0]) for eq in eqs],
         }
+        if trace is not None:
+            r["trace"] = trace.records  # every Newton iteration of the ramp, in order
         if solved:
             last = eqs[solved[-1]]
             r["last"] = squeeze_state_geometry(
@@ -83,12 +91,18 @@ def main(cfg: DictConfig) -> None:
             reached = r["travel_mm"][-1] * 1e-3
             travels = list(np.linspace(0.0, reached, 21)[1:])
             travels += [reached + float(cfg.travel_step) * k for k in range(1, int(cfg.travel_continue) + 1)]
-            walk = squeeze_solver_options(
-                linear_solver="direct", force_maximum_runaway=0.0, max_newton_per_solve=400
+            keep = {k: v for k, v in overrides.items() if k.startswith("self_contact")}  # the walk's too
+            walk = {"force_maximum_runaway": 0.0, "max_newton_per_solve": 400, **keep}
+            walk.update(OmegaConf.to_container(cfg.travel_solver, resolve=True) or {})
+            walk = squeeze_solver_options(linear_solver="direct", **walk)
+            r["travel_path"] = travel_controlled_path(
+                mesh, grasp, material, travels, options=walk, trace=bool(cfg.trace)
             )
-            r["travel_path"] = travel_controlled_path(mesh, grasp, material, travels, options=walk)
             for row in r["travel_path"][20:]:
-                print(f"   travel {row['travel_mm']:.3f} mm: {row['force']:.3f} N, status {row['status']}")
+                print(f"   travel {row['travel_mm']:.3f} mm: {row['force']:.3f} N, status {row['status']}, "
+                      f"{row['newton']} Newton, {row.get('self_contact_pairs')} pairs, "
+                      f"{row.get('inside')} / {row.get('inside_beyond_contact_depth')} inside (beyond cap)",
+                      flush=True)  # fmt: skip
         results.append(r)
         with open(cfg.out, "w") as f:  # after every grasp
             json.dump({"config": OmegaConf.to_container(cfg, resolve=True), "results": results}, f)

@@ -347,5 +347,181 @@ def test_cuda_dense_with_couplings_matches_cpu():
     _assert_matches_reference(*_reference_press("cuda", "dense"))
 
 
+# ---------------------------------------------------------------- the "feature" model
+CREASE_X = 0.01  # [m] the valley's crease line (a column of the lower block's vertices)
+PROBE_Y = 0.0075  # [m] the probe's sweep, between two rows of vertices
+PROBE_DEPTH = 4e-4  # [m] below the crease line
+
+
+def crease_probe(slope: float = 0.3):
+    """The lower 20 x 20 x 10 mm block with its top bent into a valley (z + slope |x - 10 mm| at the top,
+    a crease along a column of vertices: a concave crease seen from above) and a separate 1 mm tet above
+    it, whose lowest vertex is the probe: (mesh, probe vertex, deformed positions)."""
+    a = fem.TetMesh.box(size=SIZE, divisions=(4, 4, 2))
+    n = a.num_vertices
+    tip = np.array([CREASE_X, PROBE_Y, SIZE[2] + 3e-3])
+    tet = tip + 1e-3 * np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 1.0], [-0.5, 0.87, 1.0], [-0.5, -0.87, 1.0]])
+    mesh = fem.TetMesh(np.vstack([a.points, tet]), np.vstack([a.tets, [[n, n + 1, n + 2, n + 3]]]))
+    x = mesh.points.copy()
+    x[:n, 2] += x[:n, 2] / SIZE[2] * slope * np.abs(x[:n, 0] - CREASE_X)
+    return mesh, n, x
+
+
+def _probe_along(model, offsets):
+    """The self-contact energy and the probe's penetration with the probe PROBE_DEPTH below the crease
+    line, moved by each of ``offsets`` [m] across it (the energy with the pairs found once, in the middle;
+    the penetration with the pairs of each state)."""
+    from defgraspnets.fem.system import BlockPattern
+
+    mesh, v, x = crease_probe()
+    x[v] = [CREASE_X, PROBE_Y, SIZE[2] - PROBE_DEPTH]
+    h = mesh.median_surface_edge_length
+    sc = sk.SelfContact(mesh, BlockPattern.build(mesh, 0), 1, h, "cpu", model)
+    sc.update_pairs(wp.array(x, dtype=wp.vec3d, device="cpu"))
+    youngs = wp.array([E], dtype=wp.float64, device="cpu")
+    s_v = int(np.searchsorted(mesh.surface_vertices, v))
+    probe = sk.SelfContact(mesh, BlockPattern.build(mesh, 0), 1, h, "cpu", model)
+    energy, pen = [], []
+    for dx in offsets:
+        y = x.copy()
+        y[v, 0] += dx
+        energy.append(_energy(sc, y, youngs, 1000.0, 1e-2))
+        pen.append(probe.forces(wp.array(y, dtype=wp.vec3d, device="cpu"), youngs, 1000.0, 1e-2)[1][0, s_v])
+    return np.array(energy), np.array(pen)
+
+
+def test_prism_rule_jumps_at_a_concave_crease_and_the_feature_model_is_continuous():
+    """A vertex 0.4 mm below a valley's crease, moved across it: the prism rule releases it in the wedge
+    between the two faces' prisms (energy 0 there, the full penalty a step away: a jump that does not shrink
+    with the step); the feature model holds it all along at its distance from the crease, its energy's steps
+    shrink with the step, and outside the wedge it is the prism rule."""
+    coarse = np.linspace(-1e-3, 1e-3, 201)
+    fine = np.linspace(-1e-3, 1e-3, 2001)
+    prism, prism_pen = _probe_along("prism", coarse)
+    assert prism.max() > 0 and np.any(prism == 0) and np.any(prism_pen == 0)  # released in the wedge
+    jump = np.abs(np.diff(prism)).max()
+    assert jump > 0.3 * prism.max()
+    assert np.abs(np.diff(_probe_along("prism", fine)[0])).max() > 0.9 * jump  # the same at 10x finer steps
+
+    feature, pen = _probe_along("feature", coarse)
+    assert feature.min() > 0.2 * feature.max()  # held everywhere below the surface
+    step = np.abs(np.diff(feature)).max()
+    assert step < 0.05 * feature.max()
+    assert np.abs(np.diff(_probe_along("feature", fine)[0])).max() < 0.2 * step  # continuous
+    outside = prism > 0
+    np.testing.assert_allclose(feature[outside], prism[outside], rtol=1e-12)
+    np.testing.assert_allclose(pen[outside], prism_pen[outside], rtol=1e-12)
+    # in the wedge: the distance from the crease line (x = 10 mm, z = 10 mm)
+    wedge = ~outside
+    np.testing.assert_allclose(pen[wedge], np.hypot(coarse[wedge], PROBE_DEPTH), rtol=1e-9)
+
+
+def _assemble(sc, pattern, x):
+    N = len(x)
+    grad = wp.zeros(N, dtype=wp.vec3d, device="cpu")
+    hess = wp.zeros(pattern.nnz, dtype=wp.mat33d, device="cpu")
+    sc.add_gradient_hessian(
+        wp.array(x, dtype=wp.vec3d, device="cpu"),
+        wp.array([E], dtype=wp.float64, device="cpu"),
+        1000.0,
+        1e-2,
+        N,
+        pattern.nnz,
+        wp.array([1], dtype=wp.int32, device="cpu"),
+        wp.array(np.ones((N, 3)), dtype=wp.vec3d, device="cpu"),
+        grad,
+        hess,
+    )
+    return grad.numpy(), hess.numpy()
+
+
+@pytest.mark.parametrize("dx", [-2.5e-4, -6e-5, 0.0, 3e-4, 1.1e-3])
+def test_feature_gradient_matches_finite_differences(dx):
+    """The feature model's exact gradient (the probe and the acting triangle's vertices: the closest point
+    on the crease edge in the wedge, in a face's interior outside it) against central differences; its
+    forces sum to zero; the Gauss-Newton Hessian, pattern blocks and couplings, symmetric PSD."""
+    from defgraspnets.fem.system import BlockPattern
+
+    mesh, v, x = crease_probe()
+    x[v] = [CREASE_X + dx, PROBE_Y, SIZE[2] - PROBE_DEPTH]
+    pattern = BlockPattern.build(mesh, 0)
+    sc = sk.SelfContact(mesh, pattern, 1, mesh.median_surface_edge_length, "cpu", model="feature")
+    sc.update_pairs(wp.array(x, dtype=wp.vec3d, device="cpu"))
+    youngs = wp.array([E], dtype=wp.float64, device="cpu")
+    g, H = _assemble(sc, pattern, x)
+    touched = np.flatnonzero(np.linalg.norm(g, axis=1) > 0)
+    assert v in touched and len(touched) >= 3
+    np.testing.assert_allclose(g.sum(axis=0), 0.0, atol=1e-12 * np.abs(g).max())
+    assert g[v, 2] < 0  # pushed up, out of the valley
+    eps = 1e-9
+    for u in touched:
+        for c in range(3):
+            xp, xm = x.copy(), x.copy()
+            xp[u, c] += eps
+            xm[u, c] -= eps
+            fd = (_energy(sc, xp, youngs, 1000.0, 1e-2) - _energy(sc, xm, youngs, 1000.0, 1e-2)) / (2 * eps)
+            assert fd == pytest.approx(g[u, c], rel=1e-5, abs=1e-6 * np.abs(g).max())
+    rows, cols, coupling = (a.numpy() for a in sc.coupling)
+    index = {u: k for k, u in enumerate(touched)}
+    full = np.zeros((3 * len(touched), 3 * len(touched)))
+    for a_ in touched:
+        for b_ in touched:
+            k = pattern.block_index(np.array([a_]), np.array([b_]))[0]
+            if k >= 0:
+                full[3 * index[a_] : 3 * index[a_] + 3, 3 * index[b_] : 3 * index[b_] + 3] += H[k]
+    for r, c, blk in zip(rows, cols, coupling):
+        if np.abs(blk).max() > 0:
+            full[3 * index[r] : 3 * index[r] + 3, 3 * index[c] : 3 * index[c] + 3] += blk
+            full[3 * index[c] : 3 * index[c] + 3, 3 * index[r] : 3 * index[r] + 3] += blk.T
+    assert np.abs(full).max() > 0
+    np.testing.assert_allclose(full, full.T, atol=1e-12 * np.abs(full).max())
+    assert np.linalg.eigvalsh(full).min() > -1e-9 * np.abs(full).max()
+
+
+def test_adjacent_triangles():
+    """Each surface edge's two triangles are each other's neighbours across it, on a closed surface."""
+    mesh, _, _ = crease_probe()
+    faces = mesh.surface_faces
+    adj = sk.adjacent_triangles(faces)
+    assert adj.shape == faces.shape and np.all(adj >= 0)
+    for f in range(0, len(faces), 5):
+        for k in range(3):
+            g = adj[f, k]
+            edge = {faces[f, (k + 1) % 3], faces[f, (k + 2) % 3]}
+            assert g != f and edge <= set(faces[g])
+            assert f in adj[g]
+
+
+def test_feature_model_pressed_blocks_converge_and_balance():
+    """The two pressed blocks with the feature model: converged, nothing pressed deeper than the cap, the
+    penetration within the penalty's tolerance, the self-contact forces summing to zero and carried by the
+    lower block's support, the press force within a few per cent of the prism rule's; "dense" the same
+    equilibrium. A bad model name is refused."""
+    with pytest.raises(ValueError, match="self_contact_model"):
+        fem.SolverOptions(self_contact=1.0, self_contact_model="ipc")
+    press = 2e-3
+    on, solver, n = pressed_blocks(1.0, press, self_contact_model="feature")
+    assert on.status[0] == fem.SolveStatus.CONVERGED
+    mesh = on.mesh
+    x = mesh.points + on.displacement[0]
+    assert mesh.surface_vertices_inside(x, depth=sk.self_contact_depth(mesh)).size == 0
+    force, pen = solver.self_contact_forces()
+    z = mesh.points[:, 2]
+    lower_support = on.reaction_force[0, z < 1e-9].sum(axis=0)
+    pushed = force[0, n:].sum(axis=0)
+    assert pushed[2] > 0.1 * E * SIZE[0] * SIZE[1] * 0.01
+    np.testing.assert_allclose(force[0].sum(axis=0), 0.0, atol=1e-9 * np.abs(force).max())
+    np.testing.assert_allclose(lower_support, pushed, rtol=1e-4, atol=1e-6 * pushed[2])
+    h = solver.contact_length
+    tolerance = pushed[2] / (SIZE[0] * SIZE[1]) * h / (1000.0 * E) + 1e-2 * h / 2
+    assert 0 < pen.max() < 3 * tolerance
+    _, prism_solver, _ = pressed_blocks(1.0, press)
+    prism_pushed = prism_solver.self_contact_forces()[0][0, n:].sum(axis=0)
+    assert pushed[2] == pytest.approx(prism_pushed[2], rel=0.05)
+    dense, _, _ = pressed_blocks(1.0, press, linear_solver="dense", self_contact_model="feature")
+    assert dense.status[0] == fem.SolveStatus.CONVERGED
+    np.testing.assert_allclose(dense.displacement, on.displacement, atol=1e-9)
+
+
 if __name__ == "__main__":
     write_cpu_reference()

@@ -36,6 +36,35 @@ needed 4400 iterations for the first contact increment, not converged, against 4
 the couplings; so self-contact is refused with the banded, CG and AMG solvers (the banded solver's
 block-tridiagonal structure cannot hold couplings between distant vertices).
 
+Models (``SolverOptions.self_contact_model``). The above is "prism" (the default). Its penalty is
+discontinuous where a vertex passes between the prisms of two non-coplanar triangles: at a concave crease of
+the other surface (a valley seen from the vertex) the two prisms diverge behind the surface, and a vertex in
+the wedge between them gets no penalty however deep, the full one a step away (a jump of E_n(pen) that the
+line search cannot cross). "feature" measures the penetration as the distance to the closed triangle (its
+edges and corners included),
+
+    pen = min |x_v - c_f| over the candidate triangles f that v lies behind at c_f,
+
+where v lies behind f at c_f when (x_v - c_f) . n_f < 0 and, where c_f lies on an edge of f (a corner: two
+edges), (x_v - c_f) . n_g < 0 for the triangle g across that edge (``adjacent_triangles``, from the surface's
+topology). In a triangle's prism this is the "prism" depth (the same energy); in the wedge behind a concave
+crease c_f is on the crease edge and pen the distance from it, equal to the depths of both triangles at their
+prism boundaries: continuous. Beside a convex edge or rim the vertex is in front of the triangle across the
+edge (outside the object): not held, as with "prism". The closest point is stationary, so the gradient and
+the Gauss-Newton Hessian are those above with w the closed triangle's weights (some 0) and n = -(x_v - c_f) /
+|x_v - c_f|. Where the acting triangle switches at an edge, both distances are equal or the other is the
+smaller one, so for a vertex close to a surface whose triangles' planes describe it (the crease of the
+tests) the energy is continuous, with kinks. It is not in general: the test extends single triangles'
+planes to the vertex, and for a vertex a sizeable fraction of h from a curved or creased surface a plane's
+side can flip while the distance is still large; also at a corner (c_f a vertex of f) only f's two edge
+neighbours are tested, not the rest of the corner's fan; an edge without exactly one other triangle
+(non-manifold) holds nothing beyond it; and, as for "prism", the candidate set changes between Newton
+iterations and at the depth cap. There is no edge-edge term. Measured (``benchmarks/fem_self_contact_cpu.md``,
+session 43): worse than "prism" where it matters, hence not the default: the flips occurred for vertices
+0.4-0.5 h from the other surface (jumps of E_n(1-2 mm) that stalled the line search), and it failed the thin
+ring's squeeze where the walls meet (2.4 N; "prism": 15 N); on the soft cuboid neither carries the fold past
+the force maximum.
+
 Candidates. Once per Newton iteration (at assembly, from the deformed state) each surface vertex gets up to
 ``SELF_CONTACT_CANDIDATES`` nearest triangles, kept for that iteration's line search, so the energies
 compared there and the gradient belong to one function (the penalty acts on the one penetrated least deeply at
@@ -59,7 +88,7 @@ one Newton step before it was paired, or pressed that deep, is let through (the 
 1 % of the object's size, is below it on the measured meshes; converged penetrations are ~1e-2 h). Where a
 vertex passes from the prism of one triangle into that of the next, the penalty is continuous on flat and
 convex parts of the other surface; at a concave crease it can drop to zero in the wedge between the two
-prisms (a jump bounded by the penetration, which the line search tolerates).
+prisms (a jump bounded by the penetration; "feature" holds it there, see above).
 """
 
 from __future__ import annotations
@@ -79,6 +108,11 @@ SELF_CONTACT_DEPTH = 0.25
 SELF_CONTACT_CANDIDATES = 8
 #: rest radius of the surface around a vertex that it does not contact, in units of h
 SELF_CONTACT_EXCLUSION = 2.0
+#: how a vertex's penetration is measured (``SolverOptions.self_contact_model``): "prism", the depth below
+#: the least deep triangle whose prism holds the vertex; "feature", the distance to the least distant
+#: triangle (closed: its edges and corners too) that the vertex lies behind at its closest point, and behind
+#: the neighbours across the edges that closest point lies on (continuous across triangle boundaries)
+SELF_CONTACT_MODELS = ("prism", "feature")
 
 
 @wp.func
@@ -132,12 +166,14 @@ class SelfContactArrays:
     area: wp.array(dtype=wp.float64)  # (S,) lumped surface area A_v [m^2]
     excluded_start: wp.array(dtype=wp.int32)  # (S + 1,) CSR rows of the excluded triangles
     excluded: wp.array(dtype=wp.int32)  # sorted triangle indices per row
+    adjacent: wp.array2d(dtype=wp.int32)  # (F, 3) triangle across the edge opposite corner k, -1: none
     pair: wp.array(dtype=wp.int32)  # (B S K,) candidate triangles of each surface vertex, -1: none
     pair_distance: wp.array(dtype=wp.float64)  # (B S K,) their distances at the pairing (scratch)
     candidates: int  # K
     size: f64  # penalty length h [m]
     depth: f64  # depth cap [m]
     num_vertices: int
+    model: int  # 0: "prism", 1: "feature"
 
 
 @wp.func
@@ -172,6 +208,32 @@ def surface_points_kernel(positions: wp.array(dtype=wp.vec3d), points: wp.array(
 
 
 @wp.func
+def feature_behind(
+    sc: SelfContactArrays, positions: wp.array(dtype=wp.vec3d), o: int, f: int, r: wp.vec3d, w: wp.vec3d
+) -> bool:
+    """Model "feature": whether r = x_v - c (c the closest point of triangle f, weights w) points behind f,
+    and, where c lies on an edge (w_k = 0: the edge opposite corner k; a corner: two edges), behind the
+    triangle across that edge too. In the wedge behind a concave crease (outside both triangles' prisms,
+    behind both) the vertex is held at its distance from the crease; beside a convex edge or rim it is in
+    front of the triangle across it (outside the object) and free; an edge without a neighbour holds nothing
+    beyond it."""
+    ids = sc.faces[f]
+    x0 = positions[o + ids[0]]
+    if wp.dot(r, face_normal(x0, positions[o + ids[1]], positions[o + ids[2]])) >= f64(0.0):
+        return False
+    for k in range(3):
+        if w[k] <= f64(0.0):
+            g = sc.adjacent[f, k]
+            if g < 0:
+                return False
+            jd = sc.faces[g]
+            ng = face_normal(positions[o + jd[0]], positions[o + jd[1]], positions[o + jd[2]])
+            if wp.dot(r, ng) >= f64(0.0):
+                return False
+    return True
+
+
+@wp.func
 def nearest_penetration(sc: SelfContactArrays, positions: wp.array(dtype=wp.vec3d), o: int, b: int, s: int):
     """The candidate triangle f of surface vertex s (positions of the state at offset o, of problem b) that
     the vertex has penetrated least deeply, -1 if none: x_v projects into its interior (all closest-point
@@ -193,7 +255,17 @@ def nearest_penetration(sc: SelfContactArrays, positions: wp.array(dtype=wp.vec3
             x1 = positions[o + ids[1]]
             x2 = positions[o + ids[2]]
             wg = closest_point_weights(x, x0, x1, x2)
-            if wg[0] > zero and wg[1] > zero and wg[2] > zero:
+            if sc.model == 1:
+                r = x - (wg[0] * x0 + wg[1] * x1 + wg[2] * x2)
+                d = wp.length(r)
+                if (f < 0 or d < pen) and feature_behind(sc, positions, o, g, r, wg):
+                    f = g
+                    pen = d
+                    n = face_normal(x0, x1, x2)
+                    if d > f64(1e-15):
+                        n = -r / d
+                    w = wg
+            elif wg[0] > zero and wg[1] > zero and wg[2] > zero:
                 nf = face_normal(x0, x1, x2)
                 r = x - (wg[0] * x0 + wg[1] * x1 + wg[2] * x2)
                 d = wp.length(r)
@@ -247,6 +319,8 @@ def pair_kernel(
             inside = w[0] > f64(0.0) and w[1] > f64(0.0) and w[2] > f64(0.0)
             # a vertex as deep as the cap behind a triangle is in a wall of the object: not paired with it
             deep = inside and wp.dot(r_vec, face_normal(x0, x1, x2)) < f64(0.0) and d >= sc.depth
+            if sc.model == 1:  # "feature": as far behind the triangle or its crease
+                deep = d >= sc.depth and feature_behind(sc, positions, o, f, r_vec, w)
             if d < radius and not deep:
                 slot = count
                 if count < K:
@@ -372,6 +446,24 @@ def self_contact_depth(mesh) -> float:
     return SELF_CONTACT_DEPTH * mesh.median_surface_edge_length
 
 
+def adjacent_triangles(faces: np.ndarray) -> np.ndarray:
+    """(F, 3): the triangle across the edge opposite corner k of each triangle (the edge's other triangle),
+    -1 where the edge has no other triangle or more than one (non-manifold)."""
+    F = len(faces)
+    a = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]])
+    b = np.concatenate([faces[:, 2], faces[:, 0], faces[:, 1]])
+    key = np.minimum(a, b).astype(np.int64) * (int(faces.max()) + 1) + np.maximum(a, b)
+    slot = np.arange(3 * F)  # k F + f: the edge opposite corner k of triangle f
+    order = np.argsort(key, kind="stable")
+    _, start, count = np.unique(key[order], return_index=True, return_counts=True)
+    out = np.full(3 * F, -1, dtype=np.int32)
+    pairs = start[count == 2]
+    e0, e1 = slot[order[pairs]], slot[order[pairs + 1]]
+    out[e0] = e1 % F
+    out[e1] = e0 % F
+    return out.reshape(3, F).T.copy()
+
+
 def excluded_triangles(mesh, radius: float, chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:
     """CSR (start (S + 1,), sorted triangle indices) of the surface triangles each surface vertex v
     (``mesh.surface_vertices`` order) never pairs with: those incident to v, to its surface 1-ring, or to
@@ -408,7 +500,10 @@ class SelfContact:
     """Self-contact of a :class:`QuasiStaticSolver`'s object: the surface data on the device, one BVH per
     problem over the deformed surface, the vertex-triangle pairs, and the launches of the kernels above."""
 
-    def __init__(self, mesh, pattern, batch_size: int, size: float, device):
+    def __init__(self, mesh, pattern, batch_size: int, size: float, device, model: str = "prism"):
+        if model not in SELF_CONTACT_MODELS:
+            raise ValueError(f"self-contact model must be one of {SELF_CONTACT_MODELS}, got {model!r}")
+        self.model = model
         self.batch_size = B = int(batch_size)
         self.device = dev = device
         N = mesh.num_vertices
@@ -431,12 +526,14 @@ class SelfContact:
         sc.area = wp.array(mesh.vertex_areas[surface], dtype=wp.float64, device=dev)
         sc.excluded_start = wp.array(start, dtype=wp.int32, device=dev)
         sc.excluded = wp.array(excluded, dtype=wp.int32, device=dev)
+        sc.adjacent = wp.array(adjacent_triangles(faces), dtype=wp.int32, device=dev)
         sc.candidates = K = SELF_CONTACT_CANDIDATES
         sc.pair = wp.full(B * S * K, -1, dtype=wp.int32, device=dev)
         sc.pair_distance = wp.zeros(B * S * K, dtype=wp.float64, device=dev)
         sc.size = float(size)
         sc.depth = float(self.depth)
         sc.num_vertices = N
+        sc.model = SELF_CONTACT_MODELS.index(model)
         self.arrays = sc
         self._points = wp.zeros(B * N, dtype=wp.vec3, device=dev)
         indices = wp.array(faces.ravel(), dtype=wp.int32, device=dev)

@@ -47,7 +47,7 @@ from .material import MATERIAL_MODELS, Material
 from .mesh import TetMesh
 from .pressure import PressureLoad, PressureSurface
 from .results import Equilibrium, SolveStatus
-from .self_contact import SelfContact
+from .self_contact import SELF_CONTACT_MODELS, SelfContact
 from .system import BatchedSystem, BlockPattern
 
 __all__ = ["SolverOptions", "QuasiStaticSolver"]
@@ -361,6 +361,14 @@ class SolverOptions:
             vertices outside the FEM block pattern: needs linear_solver "direct" or "dense" ("auto" picks
             "direct" where it would pick an iterative solver), which add those couplings to the matrix they
             factor; the others would not converge (``SELF_CONTACT_SOLVERS``).
+        self_contact_model: how a vertex's penetration of the surface is measured (``self_contact.py``):
+            "prism" (default): the depth below the least deep candidate triangle whose prism holds the
+            vertex; "feature": the distance to the nearest candidate triangle, closed (edges and corners),
+            that the vertex lies behind at its closest point and behind the triangles across the edges that
+            point lies on (continuous across triangle boundaries: a vertex in the wedge behind a concave
+            crease is held at its distance from the crease, where "prism" lets it go). Measured worse
+            than "prism" on the data path's folding and collapsing objects (benchmarks/
+            fem_self_contact_cpu.md, session 43): an option, not the default.
     """
 
     contact_stiffness: float = 1000.0
@@ -399,6 +407,7 @@ class SolverOptions:
     record_tet_stress: bool = False
     contact_subdivisions: int = 1
     self_contact: float = 0.0
+    self_contact_model: str = "prism"
 
     def __post_init__(self):
         if self.linear_solver not in LINEAR_SOLVERS:
@@ -417,6 +426,11 @@ class SolverOptions:
         if not (isinstance(sc, (bool, int, float, np.integer, np.floating)) and np.isfinite(sc) and sc >= 0):
             raise ValueError(
                 f"SolverOptions.self_contact must be a finite stiffness scale >= 0 (0: off), got {sc!r}"
+            )
+        if self.self_contact_model not in SELF_CONTACT_MODELS:
+            raise ValueError(
+                f"SolverOptions.self_contact_model must be one of {', '.join(SELF_CONTACT_MODELS)}, got "
+                f"{self.self_contact_model!r}"
             )
         if sc > 0 and self.linear_solver not in ("auto", *SELF_CONTACT_SOLVERS):
             # refused here, before a caller (the grasp generator) writes anything
@@ -869,8 +883,9 @@ class QuasiStaticSolver:
         P = self.num_contact_points
         self._tet_blocks = wp.array(self.pattern.tet_blocks, dtype=wp.int32, device=dev)
         #: self-contact of the object's surface (SolverOptions.self_contact > 0), else None
+        model = self.options.self_contact_model
         self._self_contact = (
-            SelfContact(mesh, self.pattern, B, self.contact_length, dev)
+            SelfContact(mesh, self.pattern, B, self.contact_length, dev, model=model)
             if self.options.self_contact > 0
             else None
         )

@@ -14,6 +14,7 @@ Used by ``scripts/squeeze_soft_failures.py`` and ``scripts/squeeze_force_maximum
 from __future__ import annotations
 
 import numpy as np
+import warp as wp
 
 from defgraspnets import fem
 
@@ -140,10 +141,13 @@ def travel_controlled_path(
     friction: float = 0.7,
     options: fem.SolverOptions | None = None,
     device="cpu",
+    trace: bool = False,
 ) -> list[dict]:
     """Walk one grasp (a one-grasp ``GraspSet``) with both pads displacement-controlled to each of the
     increasing ``travels`` [m] in turn; stops at the first failed step. Returns per step ``travel_mm``,
-    ``force`` (the grip's total normal force [N]), ``status`` and ``newton`` iterations."""
+    ``force`` (the grip's total normal force [N]), ``status`` and ``newton`` iterations, and the converged
+    state's ``self_intersection_summary`` (with self-contact on, its pairs too). ``trace``: each step's
+    ``NewtonTrace`` records under ``trace`` (energy scans of its first 3 failed line searches)."""
     bodies = [
         fem.RigidBody(name, pad_shape(), control=fem.Control.displacement((0.0, 1.0, 0.0), dof=GRIP_DOF),
                       friction=friction)
@@ -154,7 +158,10 @@ def travel_controlled_path(
     for i, name in enumerate(FINGER_NAMES):
         solver.set_body_pose(name, poses[:, i])
     rows = []
+    tracer = NewtonTrace(solver) if trace else None
     for target in travels:
+        if tracer is not None:
+            tracer.records, tracer.scans = [], 3
         eq = solver.solve(targets={GRIP_DOF: float(target)})
         rows.append(
             {
@@ -164,8 +171,14 @@ def travel_controlled_path(
                 "newton": int(eq.newton_iterations[0]),
             }
         )
+        if tracer is not None:
+            rows[-1]["trace"] = tracer.records
         if eq.status[0] != 0:
             break
+        on = solver if solver.options.self_contact > 0 else None
+        rows[-1].update(self_intersection_summary(mesh, mesh.points + eq.displacement[0], on))
+    if tracer is not None:
+        tracer.close()
     return rows
 
 
@@ -187,3 +200,114 @@ def self_intersection_summary(mesh: fem.TetMesh, points, solver: fem.QuasiStatic
         out["self_contact_max_penetration"] = float(penetration[0].max())
         out["self_contact_force_sum"] = float(np.abs(force[0]).sum() / 2)
     return out
+
+
+def energy_along_newton_step(solver: fem.QuasiStaticSolver, steps) -> tuple[np.ndarray, np.ndarray]:
+    """(len(steps), B) total energy Pi and its self-contact part at q + t dq for each step length t of
+    ``steps``, with the solver's current state q, its last Newton direction dq (``system.increment``) and
+    the self-contact pairs of its last assembly: the function its line search just compared. For tracing a
+    line search that failed (its state and direction are still the solver's). Private solver internals."""
+    from defgraspnets.fem import kernels as kk
+
+    B, R, T = solver.batch_size, solver.rows_per_problem, solver._line_search_trials
+    steps = np.asarray(steps, dtype=float)
+    active = solver._active_array(np.ones(B, dtype=bool))
+    total, contact = [], []
+    for c0 in range(0, len(steps), T):
+        chunk = steps[c0 : c0 + T]
+        trial = np.zeros((T, B))
+        trial[: len(chunk)] = chunk[:, None]
+        solver._trial_step.assign(trial.reshape(-1))
+        states = T * B
+        wp.launch(
+            kk.trial_state_kernel,
+            dim=(states, R),
+            inputs=[solver._q, solver.system.increment, solver._trial_step, R, B, solver._q_trial],
+            device=solver.device,
+        )
+        solver._unpack(solver._q_trial, solver._positions_trial, solver._travel_trial, states)
+        e = solver._energies_at(solver._q_trial, solver._positions_trial, solver._travel_trial, active, T)
+        total.append(e[: len(chunk)])
+        sc = wp.zeros(states, dtype=wp.float64, device=solver.device)
+        if solver._self_contact is not None:
+            solver._self_contact.add_energy(
+                solver._positions_trial, states, solver._youngs, *solver._self_contact_law(), active, sc
+            )
+        contact.append(sc.numpy().reshape(T, B)[: len(chunk)])
+    return np.concatenate(total), np.concatenate(contact)
+
+
+class NewtonTrace:
+    """Records every Newton iteration of ``solver`` (one problem): the line search's verdict and step, the
+    residual (the solver's DEBUG log) and, after the step, the active self-contact pairs at the new state
+    (the solver's model, and how many of them the "prism" rule would not hold), their largest penetration
+    and summed force; at the first ``scans`` failed line searches (or steps cut below 1e-6 of the first
+    trial) after the first ``scan_after`` iterations the energy along the tried step
+    (``energy_along_newton_step``; after an accepted vanishing step, from the new state). ``records`` is
+    a list of dicts, in order."""
+
+    def __init__(
+        self, solver: fem.QuasiStaticSolver, scans: int = 3, scan_points: int = 201, scan_after: int = 0
+    ):
+        import logging
+
+        from defgraspnets.fem.self_contact import SelfContact
+
+        self.solver, self.records, self.scans, self.scan_points = solver, [], scans, scan_points
+        self.scan_after = scan_after
+        self._residual = None
+        self._prism = None
+        if solver._self_contact is not None and solver._self_contact.model != "prism":
+            self._prism = SelfContact(solver.mesh, solver.pattern, 1, solver.contact_length, solver.device)
+        trace = self
+
+        class _Handler(logging.Handler):
+            def emit(self, record):
+                if record.msg.startswith("newton it"):
+                    trace._residual = float(record.args[2])
+
+        self._logger = logging.getLogger("defgraspnets.fem.solver")
+        self._handler = _Handler(logging.DEBUG)
+        self._logger.addHandler(self._handler)
+        self._logger.setLevel(logging.DEBUG)
+        self._logger.disabled = False  # hydra's disabled job logging turns off the loggers that exist
+        self._original = solver._line_search
+        solver._line_search = self._line_search
+
+    def close(self) -> None:
+        self.solver._line_search = self._original
+        self._logger.removeHandler(self._handler)
+
+    def _line_search(self, working, max_step):
+        s = self.solver
+        failed, first_trial, alpha = self._original(working, max_step)
+        r = {
+            "residual": self._residual,
+            "line_search_failed": int(failed[0]),
+            "first_trial": float(first_trial[0]),
+            "alpha": float(alpha[0]),
+            # gradient . dq of the step (the line search's predicted slope, < 0: a descent direction)
+            "slope": float(s._step_stats.numpy()[0][0]),
+        }
+        stalled = failed[0] == 1 or alpha[0] < 1e-6 * first_trial[0]  # rejected, or a vanishing step
+        if stalled and self.scans > 0 and len(self.records) >= self.scan_after:
+            self.scans -= 1
+            t = np.linspace(0.0, float(first_trial[0]), self.scan_points)
+            total, contact = energy_along_newton_step(s, t)
+            r["scan"] = {
+                "t": t.tolist(),
+                "energy": total[:, 0].tolist(),
+                "self_contact": contact[:, 0].tolist(),
+            }
+        if s._self_contact is not None:
+            # fresh pairs at the state after the step (the next assembly pairs anew)
+            force, pen = s.self_contact_forces()
+            r["pairs"] = int((pen[0] > 0).sum())
+            r["max_penetration"] = float(pen[0].max())
+            r["force_sum"] = float(np.abs(force[0]).sum() / 2)
+            if self._prism is not None:
+                law = s._self_contact_law()
+                _, pen_prism = self._prism.forces(s._positions, s._youngs, *law)
+                r["pairs_not_prism"] = int(((pen[0] > 0) & (pen_prism[0] == 0)).sum())
+        self.records.append(r)
+        return failed, first_trial, alpha
