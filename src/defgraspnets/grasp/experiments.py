@@ -566,15 +566,18 @@ class GraspExperiments:
         s = self.settings
         return hold_state(eq, reference, closing, force, s.max_slide, s.min_finger_force_fraction)
 
-    def _stream_pairs(self, grasp_of: np.ndarray, jobs: list, reached, check, slots: int) -> None:
-        """Stream ``jobs`` (job i: load levels from the squeezed state of grasp ``grasp_of[i]``) through
-        ``slots`` problems (:meth:`fem.QuasiStaticSolver.solve_stream`; ``reached`` and ``check`` as its
-        ``on_levels`` and ``check``): a problem whose job ended or was flagged takes the next job at once."""
-        squeezed, _ = self._squeeze()
+    def _stream_pairs(
+        self, grasp_of: np.ndarray, jobs: list, reached, check, slots: int, source=None
+    ) -> None:
+        """Stream ``jobs`` (job i: load levels from the state of grasp ``grasp_of[i]`` in ``source``, a solver
+        of one problem per grasp; default the shared squeeze) through ``slots`` problems
+        (:meth:`fem.QuasiStaticSolver.solve_stream`; ``reached`` and ``check`` as its ``on_levels`` and
+        ``check``): a problem whose job ended or was flagged takes the next job at once."""
+        source = self._squeeze()[0] if source is None else source
         solver = self._solver(grasp_of[: min(len(jobs), slots)])
 
         def begin(problems, ids):
-            solver.copy_state_from(squeezed, rows=grasp_of[ids], into=problems)
+            solver.copy_state_from(source, rows=grasp_of[ids], into=problems)
 
         solver.solve_stream(jobs, begin, reached, check=check, progress=self.progress)
 
@@ -645,10 +648,11 @@ class GraspExperiments:
 
     def reorientation(self, grasp_force) -> ReorientationResult:
         """Squeeze to F_p, raise to ``grasp_force`` (F_slip, (G,) [N]), pick up, then turn gravity about
-        each axis through the J angles; fields per state. Every (grasp, axis) pair is one job of load levels
-        (as the acceleration tests' pairs), all G x A in flight at once (one problem each, as a batch of all
-        pairs): a pair stops where its grasp is lost, and no pair waits for the others at each step. (With
-        fewer problems than pairs, on the 2-core CPU the stream's per-level bookkeeping cost ~20 %.)"""
+        each axis through the J angles; fields per state. Each grasp is raised and picked up once; every
+        (grasp, axis) pair of a grasp still held is then one job of J x sub turning states from that state
+        (as the acceleration tests' pairs), all in flight at once (one problem each): a pair stops where its
+        grasp is lost, and no pair waits for the others at each step. (With fewer problems than pairs, on the
+        2-core CPU the stream's per-level bookkeeping cost ~20 %.)"""
         s = self.settings
         G, N = self.num_grasps, self.mesh.num_vertices
         F = np.broadcast_to(np.asarray(grasp_force, dtype=np.float64), (G,)).copy()
@@ -660,52 +664,43 @@ class GraspExperiments:
         closing = self.finger_frames[:, :, :3, 1]  # (G, 2, 3)
         fine = np.pi * np.arange(1, J * sub + 1) / (J * sub)
         gravity = reorientation_gravity(axes, fine, s.gravity)  # (A, J * sub, 3)
-        P = s.pickup_steps
-        # job b = grasp * A + axis, from its grasp's squeezed state: level 0 raises the grip to F_slip (the
-        # hold reference), levels 1..P pick up (gravity 0 -> g), then the J * sub reorientation sub-steps
+        # each grasp is raised to F_slip (the hold reference) and picked up once: its axes share that path,
+        # as they share the squeeze
+        squeezed, _ = self._squeeze()
+        lifted = self._solver(np.arange(G))
+        lifted.copy_state_from(squeezed, np.arange(G))
+        reference = lifted.solve(targets={GRIP_DOF: F})
+        picked = reference.converged.copy()
+        failure = np.where(picked, GraspFailure.HELD, GraspFailure.NOT_GRASPED).astype(np.int64)
+        self._gravity_ramp(lifted, reference, closing, F, picked, failure, "reorientation pickup")
+        # pair b = grasp * A + axis of a grasp held after pickup: one job, the J * sub reorientation sub-steps
+        # from its grasp's picked-up state
         grasp_of = np.repeat(np.arange(G), A)
-        pickup = [
-            {"body_load": fem.BodyLoad(gravity=(0.0, 0.0, -s.gravity * k / P))} for k in range(1, P + 1)
-        ]
+        failure = failure[grasp_of]
+        todo = np.flatnonzero(picked[grasp_of])
         jobs = [
-            [{GRIP_DOF: float(F[grasp_of[b]])}, *pickup]
-            + [{"body_load": fem.BodyLoad(gravity=gravity[b % A, step])} for step in range(J * sub)]
-            for b in range(G * A)
+            [{"body_load": fem.BodyLoad(gravity=gravity[b % A, step])} for step in range(J * sub)]
+            for b in todo
         ]
         held_state = np.zeros((G * A, J), dtype=bool)
-        failure = np.full(G * A, GraspFailure.HELD, dtype=np.int64)
         positions = np.full((G * A, J, N, 3), np.nan)
         vm = np.full((G * A, J, N), np.nan)
         deformation = np.full((G * A, J, N), np.nan)
         peak = np.full((G * A, J), np.nan)
-        reference = []  # [the (G A)-problem equilibrium at F_slip], filled as the jobs reach it
 
         def held(ids, ks, part):
-            codes = np.full(len(ids), fem.SolveStatus.CONVERGED)
-            raised = np.flatnonzero(ks == 0)
-            if raised.size:
-                if not reference:
-                    reference.append(part.take(np.zeros(G * A, dtype=np.int64)))
-                reference[0].put(ids[raised], part.take(raised))
-            loaded = np.flatnonzero(ks > 0)
-            if loaded.size:
-                b = ids[loaded]
-                g = grasp_of[b]
-                hs = self._hold(part.take(loaded), reference[0].take(b), closing[g], F[g])
-                failure[b[~hs.held]] = hs.failure[~hs.held]
-                codes[loaded[~hs.held]] = fem.SolveStatus.ESCAPED
-            return codes
+            b = todo[ids]
+            g = grasp_of[b]
+            hs = self._hold(part, reference.take(g), closing[g], F[g])
+            failure[b[~hs.held]] = hs.failure[~hs.held]
+            return np.where(hs.held, fem.SolveStatus.CONVERGED, fem.SolveStatus.ESCAPED)
 
         def reached(ids, ks, part):
-            # the first report of a job the solver flagged: no grasp at F_slip, or no equilibrium later
-            # (a job flagged before it began reports all its levels at once: level 0's code is the one)
-            flagged = ~part.converged & (failure[ids] == GraspFailure.HELD)
-            failure[ids[flagged & (ks > 0)]] = GraspFailure.NO_EQUILIBRIUM
-            failure[ids[flagged & (ks == 0)]] = GraspFailure.NOT_GRASPED
-            step = ks - 1 - P  # reorientation sub-step
-            done = np.flatnonzero(part.converged & (step >= 0) & ((step + 1) % sub == 0))
+            b = todo[ids]
+            failure[b[~part.converged & (failure[b] == GraspFailure.HELD)]] = GraspFailure.NO_EQUILIBRIUM
+            done = np.flatnonzero(part.converged & ((ks + 1) % sub == 0))
             if done.size:  # an angle reached and held: its fields
-                b, j = ids[done], (step[done] + 1) // sub - 1
+                b, j = b[done], (ks[done] + 1) // sub - 1
                 eq = part.take(done)
                 stress = eq.tet_stress if eq.tet_stress is not None else eq.vertex_stress
                 held_state[b, j] = True
@@ -714,7 +709,8 @@ class GraspExperiments:
                 deformation[b, j] = met.rigid_removed_deformation(self.mesh.points, eq.positions, self.masses)
                 peak[b, j] = met.max_von_mises_stress(stress)
 
-        self._stream_pairs(grasp_of, jobs, reached, held, slots=G * A)
+        if todo.size:
+            self._stream_pairs(grasp_of[todo], jobs, reached, held, slots=todo.size, source=lifted)
         positions = positions.reshape(G, A * J, N, 3)
         return ReorientationResult(
             grasp_force=F,
