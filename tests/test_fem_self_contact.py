@@ -121,6 +121,18 @@ def _energy(sc, x, youngs, kappa, zeta):
     return float(e.numpy()[0])
 
 
+def _assert_fd_gradient(sc, x, g, touched, youngs, kappa, zeta, eps: float = 1e-9) -> None:
+    """The self-contact gradient ``g`` at ``x`` matches central differences of the energy at every
+    component of the ``touched`` vertices."""
+    for u in touched:
+        for c in range(3):
+            xp, xm = x.copy(), x.copy()
+            xp[u, c] += eps
+            xm[u, c] -= eps
+            fd = (_energy(sc, xp, youngs, kappa, zeta) - _energy(sc, xm, youngs, kappa, zeta)) / (2 * eps)
+            assert fd == pytest.approx(g[u, c], rel=1e-5, abs=1e-6 * np.abs(g).max())
+
+
 def test_gradient_and_hessian_match_finite_differences():
     """The energy's exact gradient (the vertex and the triangle's vertices) against central differences with
     the pair fixed; the Hessian's blocks (in the pattern, and the vertex-triangle couplings outside it) the
@@ -153,14 +165,8 @@ def test_gradient_and_hessian_match_finite_differences():
     np.testing.assert_array_equal(touched, np.sort(np.r_[mesh.surface_faces[f], v]))
     assert _energy(sc, x, youngs, kappa, zeta) > 0
     np.testing.assert_allclose(g.sum(axis=0), 0.0, atol=1e-12 * np.abs(g).max())  # internal forces
+    _assert_fd_gradient(sc, x, g, touched, youngs, kappa, zeta)
     eps = 1e-9
-    for u in touched:
-        for c in range(3):
-            xp, xm = x.copy(), x.copy()
-            xp[u, c] += eps
-            xm[u, c] -= eps
-            fd = (_energy(sc, xp, youngs, kappa, zeta) - _energy(sc, xm, youngs, kappa, zeta)) / (2 * eps)
-            assert fd == pytest.approx(g[u, c], rel=1e-5, abs=1e-6 * np.abs(g).max())
     for u in touched:
         blk = H[pattern.vertex_diag[u]]
         assert np.abs(blk).max() > 0
@@ -453,14 +459,7 @@ def test_feature_gradient_matches_finite_differences(dx):
     assert v in touched and len(touched) >= 3
     np.testing.assert_allclose(g.sum(axis=0), 0.0, atol=1e-12 * np.abs(g).max())
     assert g[v, 2] < 0  # pushed up, out of the valley
-    eps = 1e-9
-    for u in touched:
-        for c in range(3):
-            xp, xm = x.copy(), x.copy()
-            xp[u, c] += eps
-            xm[u, c] -= eps
-            fd = (_energy(sc, xp, youngs, 1000.0, 1e-2) - _energy(sc, xm, youngs, 1000.0, 1e-2)) / (2 * eps)
-            assert fd == pytest.approx(g[u, c], rel=1e-5, abs=1e-6 * np.abs(g).max())
+    _assert_fd_gradient(sc, x, g, touched, youngs, 1000.0, 1e-2)
     rows, cols, coupling = (a.numpy() for a in sc.coupling)
     index = {u: k for k, u in enumerate(touched)}
     full = np.zeros((3 * len(touched), 3 * len(touched)))
