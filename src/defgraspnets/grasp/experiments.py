@@ -388,9 +388,8 @@ class AccelerationResult:
     # or NOT_CONVERGED (Newton stalled near the friction limit: the threshold is then a lower bound)
     solver_status: np.ndarray
     instability: np.ndarray  # (G,) mean threshold over the directions
-    # (G, D) Newton iterations each problem spent in the acceleration ramp (the squeeze not counted): the
-    # cost of the test. A lost problem spends none after the step that lost it (flagged problems are
-    # skipped by the solver; one that failed a hold criterion keeps its load, so it is at equilibrium)
+    # (G, D) Newton iterations each (grasp, direction) pair spent in the acceleration ramp (the squeeze not
+    # counted): the cost of the test. A lost pair spends none after the step that lost it (its job stops)
     newton_iterations: np.ndarray | None = None
 
     @property
