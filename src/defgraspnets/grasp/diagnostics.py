@@ -269,6 +269,8 @@ class NewtonTrace:
         self._logger = logging.getLogger("defgraspnets.fem.solver")
         self._handler = _Handler(logging.DEBUG)
         self._logger.addHandler(self._handler)
+        # restored by close(): left at DEBUG, every later Newton iteration of the process would build a record
+        self._logger_state = (self._logger.level, self._logger.disabled)
         self._logger.setLevel(logging.DEBUG)
         self._logger.disabled = False  # hydra's disabled job logging turns off the loggers that exist
         self._original = solver._line_search
@@ -277,6 +279,8 @@ class NewtonTrace:
     def close(self) -> None:
         self.solver._line_search = self._original
         self._logger.removeHandler(self._handler)
+        self._logger.setLevel(self._logger_state[0])
+        self._logger.disabled = self._logger_state[1]
 
     def _line_search(self, working, max_step):
         s = self.solver

@@ -665,9 +665,7 @@ class GraspExperiments:
         gravity = reorientation_gravity(axes, fine, s.gravity)  # (A, J * sub, 3)
         # each grasp is raised to F_slip (the hold reference) and picked up once: its axes share that path,
         # as they share the squeeze
-        squeezed, _ = self._squeeze()
-        lifted = self._solver(np.arange(G))
-        lifted.copy_state_from(squeezed, np.arange(G))
+        lifted = self._squeezed(1, "reorientation")[0]
         reference = lifted.solve(targets={GRIP_DOF: F})
         picked = reference.converged.copy()
         failure = np.where(picked, GraspFailure.HELD, GraspFailure.NOT_GRASPED).astype(np.int64)
