@@ -16,12 +16,16 @@ of an arrow matrix H = [[K, G], [G^T, E]] and are eliminated through their Schur
 
 Each step is one batched dense operation over all problems (PyTorch: cuSOLVER / cuBLAS on CUDA,
 LAPACK / BLAS on the CPU). Cost per problem: sum_i (s_i^3 / 3 + s_i s_{i-1} (s_i + s_{i-1})) instead
-of n^3 / 3 for the whole matrix: on a 960-vertex box about 1/9 of the dense factorization, on the
-915-vertex membrane of the tactile sensor 1/29 (3747 vertices: 1/110), and a factor's memory falls
-too (17 instead of 66 MB for the box; 72 MB instead of 1.0 GB for the 3747-vertex membrane).
+of n^3 / 3 for the whole matrix: on a 960-vertex box about 1/22 of the dense factorization (slabs,
+below), on the 915-vertex membrane of the tactile sensor 1/29 (3747 vertices: 1/110), and a factor's
+memory falls too (11 instead of 66 MB for the box; 72 MB instead of 1.0 GB for the 3747-vertex membrane).
 
 Levels are merged, in order, while the merged block stays no larger than the widest level: fewer,
-larger blocks mean fewer sequential launches at no more than the widest level's cost per block.
+larger blocks mean fewer sequential launches at no more than the widest level's cost per block. Given
+the vertices' rest positions, breadth-first sweeps from the whole lowest end of the object along each
+principal axis (multi-source levels: slabs across the axis) compete with the pseudo-peripheral
+vertex's shells, and the structure of least flops is taken (``level_blocks``): a corner's shells on
+a box are diagonal sections up to twice as wide as its cross-section.
 """
 
 from __future__ import annotations
@@ -34,6 +38,8 @@ from scipy.sparse.csgraph import breadth_first_order, connected_components
 
 __all__ = ["BlockTridiagonalLayout", "BlockTridiagonalFactor", "level_blocks"]
 
+_IDENTITIES: dict = {}  # (n, dtype, device) -> the n x n identity (BlockTridiagonalFactor._identity)
+
 
 def _bfs_levels(graph: sp.csr_matrix, start: int) -> tuple[np.ndarray, np.ndarray]:
     """Vertices reached from ``start`` in breadth-first order and their distances (levels)."""
@@ -44,13 +50,60 @@ def _bfs_levels(graph: sp.csr_matrix, start: int) -> tuple[np.ndarray, np.ndarra
     return order, level[order]
 
 
-def level_blocks(graph: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
+def _multi_source_levels(graph: sp.csr_matrix, sources: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices reached from the set ``sources`` (level 0) in breadth-first order and their levels."""
+    n = graph.shape[0]
+    hub = sp.csr_matrix((np.ones(len(sources)), (np.full(len(sources), n), sources)), shape=(n + 1, n + 1))
+    augmented = sp.bmat([[graph, None], [None, sp.csr_matrix((1, 1))]], format="csr") + hub
+    order, level = _bfs_levels(augmented, n)
+    return order[1:], level[1:] - 1
+
+
+def _merged_sizes(level: np.ndarray) -> list[int]:
+    """Consecutive levels merged while the merged block is no wider than the widest level."""
+    widths = np.bincount(level)
+    cap = widths.max()
+    merged = [0]
+    for w in widths:
+        if merged[-1] and merged[-1] + w > cap:
+            merged.append(0)
+        merged[-1] += int(w)
+    return merged
+
+
+def _factor_cost(sizes) -> float:
+    """Leading flops of the block-tridiagonal Cholesky with these block sizes (any common unit)."""
+    s = np.asarray(sizes, dtype=float)
+    return float(np.sum(s**3) / 3 + np.sum(s[1:] * s[:-1] * (s[1:] + s[:-1])))
+
+
+def _slab_sources(graph: sp.csr_matrix, members: np.ndarray, points: np.ndarray) -> list[np.ndarray]:
+    """Start sets for sweeps along a component's principal axes: per axis, the vertices within half a
+    median edge of the component's lowest end along it (on a structured box: its end face)."""
+    x = points[members]
+    centred = x - x.mean(axis=0)
+    _, _, axes = np.linalg.svd(centred, full_matrices=False)
+    sub = graph[members][:, members].tocoo()
+    edge = np.linalg.norm(x[sub.row] - x[sub.col], axis=1)
+    half = 0.5 * float(np.median(edge[edge > 0])) if np.any(edge > 0) else 0.0
+    starts = []
+    for axis in axes:
+        t = centred @ axis
+        starts.append(members[t <= t.min() + half])
+    return starts
+
+
+def level_blocks(graph: sp.csr_matrix, points: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Elimination order and block sizes (in vertices) of a level structure of ``graph``.
 
     Per connected component: a pseudo-peripheral start vertex (repeat: take the farthest vertex of
     least degree, until the eccentricity stops growing), its breadth-first levels, and consecutive
     levels merged while the merged block is no wider than the component's widest level. Blocks of
-    different components do not couple. Returns (order (N,), sizes (m,)) with sizes.sum() == N."""
+    different components do not couple. With the vertices' ``points`` (N, 3), sweeps that start from
+    the whole lowest end of the component along each of its principal axes compete too (levels then
+    are slabs across the axis: on the FEM benchmark's 960-vertex box 12 planes of 80 vertices instead
+    of 12 diagonal shells of up to 167 around a corner, 0.39x the flops); the structure of least
+    factorization flops is taken. Returns (order (N,), sizes (m,)) with sizes.sum() == N."""
     graph = sp.csr_matrix(graph)
     n = graph.shape[0]
     degree = np.diff(graph.indptr)
@@ -65,15 +118,16 @@ def level_blocks(graph: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
             if farther[1][-1] <= level[-1]:
                 break
             order, level = farther
-        widths = np.bincount(level)
-        cap = widths.max()
-        merged = [0]
-        for w in widths:
-            if merged[-1] and merged[-1] + w > cap:
-                merged.append(0)
-            merged[-1] += int(w)
+        best = (_factor_cost(_merged_sizes(level)), order, level)
+        if points is not None and len(members) > 1:
+            for sources in _slab_sources(graph, members, np.asarray(points, dtype=float)):
+                o, lv = _multi_source_levels(graph, sources)
+                cost = _factor_cost(_merged_sizes(lv))
+                if cost < best[0]:
+                    best = (cost, o, lv)
+        _, order, level = best
         order_parts.append(order)
-        sizes.extend(merged)
+        sizes.extend(_merged_sizes(level))
     order = np.concatenate(order_parts)
     if len(order) != n or len(np.unique(order)) != n:
         raise RuntimeError("internal error: the level structure does not cover every vertex once")
@@ -103,14 +157,20 @@ class BlockTridiagonalLayout:
 
     @classmethod
     def build(
-        cls, rows: np.ndarray, cols: np.ndarray, num_vertices: int, num_dofs: int
+        cls,
+        rows: np.ndarray,
+        cols: np.ndarray,
+        num_vertices: int,
+        num_dofs: int,
+        points: np.ndarray | None = None,
     ) -> BlockTridiagonalLayout:
-        """From a BSR block pattern of one problem (block rows/cols; vertex rows first, then travel rows)."""
+        """From a BSR block pattern of one problem (block rows/cols; vertex rows first, then travel rows);
+        ``points``: the vertices' rest positions (:func:`level_blocks`' slab sweeps), or None."""
         rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
         N = num_vertices
         vv = (rows < N) & (cols < N)
         graph = sp.csr_matrix((np.ones(int(vv.sum())), (rows[vv], cols[vv])), shape=(N, N))
-        order, vertex_sizes = level_blocks(graph)
+        order, vertex_sizes = level_blocks(graph, points)
         rank = np.empty(N, dtype=np.int64)
         rank[order] = np.arange(N)
         block_of = np.repeat(np.arange(len(vertex_sizes)), vertex_sizes)[rank]  # block of each vertex
@@ -266,10 +326,15 @@ class BlockTridiagonalFactor:
 
     @staticmethod
     def _identity(g: int, n: int, like):
-        """(g, n, n) identity matrices (a broadcast view) of ``like``'s dtype and device."""
+        """(g, n, n) identity matrices (a broadcast view) of ``like``'s dtype and device (one n x n identity
+        per size, dtype and device is made once: a factorization asks for one per block)."""
         import torch
 
-        return torch.eye(n, dtype=like.dtype, device=like.device).expand(g, n, n)
+        key = (n, like.dtype, like.device)
+        eye = _IDENTITIES.get(key)
+        if eye is None:
+            eye = _IDENTITIES[key] = torch.eye(n, dtype=like.dtype, device=like.device)
+        return eye.expand(g, n, n)
 
     @staticmethod
     def _pick(t, rows):

@@ -845,7 +845,7 @@ class QuasiStaticSolver:
         # ---------------- sparse system
         self._near_nullspace = rigid_body_modes(mesh.points, B, D)
         self.pattern = BlockPattern.build(mesh, D)
-        self.system = BatchedSystem(self.pattern, B, dev)
+        self.system = BatchedSystem(self.pattern, B, dev, points=mesh.points)
         # chord Newton (SolverOptions.max_factor_reuse): per problem, the Newton steps taken with its stored
         # factorization and the Levenberg-Marquardt damping it was made with
         reuse = self.options.max_factor_reuse
