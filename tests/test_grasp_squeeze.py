@@ -304,7 +304,9 @@ def test_first_force_step_of_a_soft_faceted_cube_converges_with_the_friction_sti
     material = fem.Material(1e4, 0.3, 1000.0, model="neohookean")
 
     def first_step(**overrides):
-        options = squeeze_solver_options(linear_solver="direct", **overrides)
+        # (measured with the late friction-lag check, before session 44: the early one converges the exact
+        # stick zone's first step within the budget too)
+        options = squeeze_solver_options(linear_solver="direct", friction_lag_check=1, **overrides)
         solver = make_squeeze_solver(mesh, grasps, material, mu, device="cpu", options=options)
         return squeeze_ramp(solver, force, 1)[-1]
 
@@ -391,7 +393,9 @@ def test_a_runaway_that_snaps_to_another_branch_goes_on():
     soft = fem.Material(1e4, 0.3, 1000.0, model="neohookean")
 
     def ramp(**overrides):
-        options = squeeze_solver_options(linear_solver="direct", **overrides)
+        # (measured with the late friction-lag check, before session 44: with the early one the runaway
+        # increments end NOT_CONVERGED, not flagged as a force maximum)
+        options = squeeze_solver_options(linear_solver="direct", friction_lag_check=1, **overrides)
         solver = make_squeeze_solver(mesh, grasps, soft, 0.7, device="cpu", options=options)
         eqs = squeeze_ramp(solver, 15.0, 50)
         return eqs, sum(bool(eq.converged[0]) for eq in eqs)
@@ -448,6 +452,7 @@ def test_a_failed_release_is_relaxed_by_re_referenced_springs_and_converging_gra
             stabilization_relax=relax,
             stabilization_relax_decay=1.0,
             max_newton_first_step=200,  # (measured with 200 for every step, before session 40)
+            friction_lag_check=1,  # (and the late friction-lag check, before session 44)
         )
         solver = make_squeeze_solver(mesh, grasps, material, mu, device="cpu", options=options)
         return squeeze_ramp(solver, force, 1, barrier=barrier)[-1]
@@ -497,6 +502,7 @@ def test_weakened_relax_springs_reach_the_equilibrium_that_constant_springs_cree
             stabilization_relax=40,
             stabilization_relax_decay=decay,
             max_newton_first_step=200,  # (measured with 200 for every step, before session 40)
+            friction_lag_check=1,  # (and the late friction-lag check, before session 44)
         )
         solver = make_squeeze_solver(mesh, grasps, material, mu, device="cpu", options=options)
         return squeeze_ramp(solver, force, 1)[-1]
@@ -532,7 +538,11 @@ def test_a_larger_first_step_budget_lets_a_stiff_ring_roll_into_the_grasp():
     material = fem.Material(4.642e6, 0.3, 1000.0, model="neohookean")
 
     def ramp(steps, first=None, barrier=False):  # None: the squeeze default, 400
-        options = squeeze_solver_options(linear_solver="direct", max_newton_first_step=first)
+        # (measured with the late friction-lag check, before session 44: the early one rolls grasp 3 in
+        # within 200 iterations)
+        options = squeeze_solver_options(
+            linear_solver="direct", max_newton_first_step=first, friction_lag_check=1
+        )
         assert options.max_newton_per_solve == 200
         assert options.max_newton_first_step == (400 if first is None else first)
         solver = make_squeeze_solver(mesh, grasps, material, mu, device="cpu", options=options)
@@ -577,7 +587,9 @@ def test_every_ramp_streamed_through_a_slot_gets_the_first_step_budget():
     mesh = fem.TetMesh.load(Path(__file__).parent / "data" / "cuboid_30x30x30_ftetwild.vtu")
     grasps = sample_antipodal_grasps(mesh, num_grasps=100, friction_coefficient=0.7, seed=0)[[0, 96]]
     material = fem.Material(1e7, 0.3, 1000.0, model="neohookean")
-    options = squeeze_solver_options(linear_solver="direct")
+    # (measured with the late friction-lag check, before session 44: the early one converges grasp 96's first
+    # step in 40 iterations, test_the_early_friction_lag_check_...)
+    options = squeeze_solver_options(linear_solver="direct", friction_lag_check=1)
     solver = make_squeeze_solver(mesh, grasps[[0]], material, 0.7, device="cpu", options=options)
     got = {}
 
@@ -592,6 +604,43 @@ def test_every_ramp_streamed_through_a_slot_gets_the_first_step_budget():
     (eq,) = squeeze_ramp(alone, 0.3, 1)
     assert eq.newton_iterations[0] == newton
     np.testing.assert_array_equal(eq.displacement[0], displacement)
+
+
+def test_the_early_friction_lag_check_settles_a_stiff_first_contact_in_fewer_newton_iterations():
+    """The squeeze path checks frozen friction lags early (``friction_lag_check`` = 1000, since session 44):
+    the first force step (0.3 N) of the 268-vertex cube at 10 MPa, grasp 96, converges in 40 Newton
+    iterations instead of 271 with the late check, in an exact equilibrium (the pads press with F / 2 each
+    and balance, Coulomb holds at every contact); grasp 0, which converges fast either way, ends with the same
+    pad travel and stresses (to 1e-5). Grasp 96 lands elsewhere on the frictional path (pad travel 1.7 % apart), as other
+    solver settings move such first contacts (``squeeze_solver_options``)."""
+    from pathlib import Path
+
+    mesh = fem.TetMesh.load(Path(__file__).parent / "data" / "cuboid_30x30x30_ftetwild.vtu")
+    grasps = sample_antipodal_grasps(mesh, num_grasps=100, friction_coefficient=0.7, seed=0)[[96, 0]]
+    mu, force = 0.7, 0.3
+    material = fem.Material(1e7, 0.3, 1000.0, model="neohookean")
+
+    def first_step(**overrides):
+        options = squeeze_solver_options(linear_solver="direct", max_newton_first_step=0, **overrides)
+        solver = make_squeeze_solver(mesh, grasps, material, mu, device="cpu", options=options)
+        return squeeze_ramp(solver, force, 1)[-1]
+
+    assert squeeze_solver_options().friction_lag_check == 1000
+    late, early = first_step(friction_lag_check=1), first_step()
+    late.require_converged()
+    early.require_converged()
+    assert late.newton_iterations[0] > 200 and early.newton_iterations[0] <= 100  # measured 271 and 40
+    np.testing.assert_allclose(early.dof_force["grip"], force, rtol=1e-4)
+    left, right = (early.body_force[name] for name in FINGER_NAMES)
+    np.testing.assert_allclose(left + right, 0.0, atol=1e-5)
+    for name in FINGER_NAMES:
+        normal = early.contact_normal_force[name]
+        tangential = np.linalg.norm(early.contact_friction_force[name], axis=-1)
+        assert np.all(tangential <= mu * normal + 1e-3 * force)  # to the squeeze path's friction_rtol
+    np.testing.assert_allclose(early.travel["grip"], late.travel["grip"], rtol=0.05)
+    # grasp 0: the same pad travel and stresses (measured 1.8e-6 and 1.7e-7 apart)
+    np.testing.assert_allclose(early.travel["grip"][1], late.travel["grip"][1], rtol=1e-5)
+    np.testing.assert_allclose(early.von_mises[1].mean(), late.von_mises[1].mean(), rtol=1e-5)
 
 
 def test_the_squeeze_path_gives_the_first_force_step_twice_the_newton_budget():

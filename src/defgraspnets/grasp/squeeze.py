@@ -248,6 +248,22 @@ def squeeze_solver_options(**overrides) -> fem.SolverOptions:
     would save one more ramp (grasp 48, whose second step needs 221: the later steps' budget stops tilted
     grasps whose friction keeps re-lagging, so it stays). ``max_newton_first_step=200`` gives the data sets
     before session 40.
+
+    Frozen friction lags are checked early (``friction_lag_check`` = 1000, since session 44): a problem whose
+    residual is within 1000 times the tolerance has its lags' consistency checked and is re-lagged at once
+    where a contact's capacity error exceeds 10 times the residual, instead of first converging the lagged
+    problem and then starting over. Measured with the squeeze defaults above (so with the 5e-3 h stick zone;
+    with the exact stick zone it failed 1 of 4 stiff-cylinder first steps in session 35, the engine's default
+    stays 1): the FEM benchmark (one H200, 100 grasps of the 960-vertex box, 0-15 N in 50 steps,
+    ``dense_banded``) 38.6 -> 35.3 s in one lease, 40.9 -> 37.2 s in another, slowest grasp 1573 -> 1484 and
+    -> 1428 Newton iterations, 100 of 100 converged every time (``benchmarks/fem_cuda_*_h200_s44.json``); on
+    the 2-core CPU ("direct", 16 antipodal grasps of each test mesh, seed 0, 0-15 N in 10 steps; converged of
+    16, summed Newton iterations, with 1 -> 1000; ``benchmarks/squeeze_friction_lag_check_cpu_s44.json``):
+    cylinder_r20_h40 and cone_rb25_rt10_h60 at 10 MPa 16 -> 16, annulus_ro45_ri35_h20 at 4.64 MPa 13 -> 16
+    (5941 -> 5099), capsule_r20_l40 at 100 kPa 16 -> 16 (3479 -> 2913), cylinder_r20_h40 at 10 kPa 12 -> 12
+    (4414 -> 3752; the same four force maxima), cuboid_30x30x30 at 21.5 kPa 12 -> 12 (6178 -> 5370; the same
+    four fail, two stalls and two force maxima before, four force maxima after). ``friction_lag_check=1``
+    gives the data sets before session 44.
     """
     overrides = {key: value for key, value in overrides.items() if value is not None}
     budget = overrides.get("max_newton_per_solve", 200)
@@ -272,6 +288,7 @@ def squeeze_solver_options(**overrides) -> fem.SolverOptions:
             "force_maximum_snap": 0,
             "stabilization_relax": 40,
             "stabilization_relax_decay": 0.25,
+            "friction_lag_check": 1000.0,
             **overrides,
         }
     )
