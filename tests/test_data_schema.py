@@ -111,6 +111,27 @@ def test_unfinished_shard_of_another_material_model_is_not_resumed(tmp_path):
         GraspShardWriter.create(path, other, fingers, pose, fpose, cdir, S, "test")
 
 
+def test_unfinished_shard_of_other_solver_settings_is_not_resumed(tmp_path):
+    """The writer records the solver settings it is given; an unfinished shard is resumed only with the same
+    ones (none recorded counts as other settings), and the error names what differs."""
+    obj, fingers, pose, fpose, cdir = _inputs()
+    path = tmp_path / shard_file_name("cube", 0, 1)
+    settings = {"squeeze": {"rtol": 1e-5, "friction_lag_check": 1000.0}}
+    w = GraspShardWriter.create(path, obj, fingers, pose, fpose, cdir, S, "test", solver_settings=settings)
+    _write_all(w, obj, fpose, cdir, entries=w.pending()[:1])
+    w.close()
+    other = {"squeeze": {"rtol": 1e-5, "friction_lag_check": 1.0}}
+    with pytest.raises(ValueError, match=r"solver settings \(squeeze.friction_lag_check: 1000.0 -> 1.0\)"):
+        GraspShardWriter.create(path, obj, fingers, pose, fpose, cdir, S, "test", solver_settings=other)
+    with pytest.raises(ValueError, match="recorded on one side only"):
+        GraspShardWriter.create(path, obj, fingers, pose, fpose, cdir, S, "test")
+    w = GraspShardWriter.create(path, obj, fingers, pose, fpose, cdir, S, "test", solver_settings=settings)
+    assert len(w.pending()) == obj.num_moduli * len(pose) - 1  # resumed
+    _write_all(w, obj, fpose, cdir, entries=w.pending())
+    w.finalize()
+    assert GraspShard(path).solver_settings == settings
+
+
 def test_resumed_write_equals_uninterrupted(tmp_path):
     obj, fingers, pose, fpose, cdir = _inputs()
     a = tmp_path / "a" / "cube__shard0of1.h5"

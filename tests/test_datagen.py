@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -119,6 +121,34 @@ def test_resume_simulates_only_missing_grasps(tmp_path, monkeypatch):
     sh = GraspShard(r.path)
     assert len(sh.solved()) == 2 * GRASPS and not partial.exists()
     assert np.all(np.isfinite(sh.force))
+
+
+def test_shards_record_their_solver_settings_and_are_not_resumed_with_others(data_dir, tmp_path, monkeypatch):
+    """Each shard records the FEM settings that decide its equilibria (the squeeze path's defaults here,
+    without the linear solver's choice); a run killed midway is not continued with other settings (a
+    ValueError names what differs), is continued with another linear solver, and starts over with
+    ``overwrite``."""
+    from defgraspnets.grasp.datagen import solver_settings
+    from defgraspnets.grasp.squeeze import squeeze_solver_options
+
+    recorded = GraspShard(data_dir / shard_file_name("tinybox", 0, 1)).solver_settings
+    assert recorded == json.loads(json.dumps(solver_settings(squeeze_solver_options())))
+    assert recorded["squeeze"]["friction_lag_check"] == 1000 and "linear_solver" not in recorded["squeeze"]
+    assert "experiments" not in recorded  # squeeze ramps only
+
+    real_write = GraspShardWriter.write
+    _kill_after_writes(monkeypatch, 1)
+    with pytest.raises(Killed):
+        _generate(tmp_path)
+    monkeypatch.setattr(GraspShardWriter, "write", real_write)
+    late = squeeze_solver_options(friction_lag_check=1)
+    with pytest.raises(ValueError, match=r"solver settings \(squeeze.friction_lag_check: 1000.0 -> 1.0\)"):
+        _generate(tmp_path, solver_options=late)
+    assert (tmp_path / "tinybox__shard0of1.partial.h5").exists()  # left as it was
+    (r,) = _generate(tmp_path, solver_options=squeeze_solver_options(linear_solver="dense"))  # resumed
+    assert len(GraspShard(r.path).solved()) == len(MODULI) * GRASPS
+    (r,) = _generate(tmp_path, solver_options=late, overwrite=True)  # starts over
+    assert GraspShard(r.path).solver_settings["squeeze"]["friction_lag_check"] == 1.0
 
 
 def test_moduli_in_one_batch_give_the_same_data(data_dir, tmp_path, monkeypatch):

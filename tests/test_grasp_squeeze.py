@@ -610,9 +610,9 @@ def test_the_early_friction_lag_check_settles_a_stiff_first_contact_in_fewer_new
     """The squeeze path checks frozen friction lags early (``friction_lag_check`` = 1000, since session 44):
     the first force step (0.3 N) of the 268-vertex cube at 10 MPa, grasp 96, converges in 40 Newton
     iterations instead of 271 with the late check, in an exact equilibrium (the pads press with F / 2 each
-    and balance, Coulomb holds at every contact); grasp 0, which converges fast either way, ends with the same
-    pad travel and stresses (to 1e-5). Grasp 96 lands elsewhere on the frictional path (pad travel 1.7 % apart), as other
-    solver settings move such first contacts (``squeeze_solver_options``)."""
+    and balance, Coulomb holds at every contact); grasp 0, which converges fast either way, ends with the
+    same pad travel and stresses (to 1e-5). Grasp 96 lands elsewhere on the frictional path (pad travel 1.7 %
+    apart), as other solver settings move such first contacts (``squeeze_solver_options``)."""
     from pathlib import Path
 
     mesh = fem.TetMesh.load(Path(__file__).parent / "data" / "cuboid_30x30x30_ftetwild.vtu")

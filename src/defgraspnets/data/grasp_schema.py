@@ -6,7 +6,8 @@ One file per object shard, named ``<object>__shard<i>of<n>.h5``. All quantities 
 ``V`` / ``T`` finger-pad vertices / triangles::
 
     /                          attrs: schema, generator_version, object_name, object_category,
-                                      object_source ("primitive" | "real"), config (YAML), created (ISO)
+                                      object_source ("primitive" | "real"), config (YAML), created (ISO),
+                                      solver_settings (JSON; optional: shards before session 44 lack it)
     /object/points             (N, 3)        float64  rest vertex positions X [m], object frame
     /object/tets               (M, 4)        int64
     /object/surface_faces      (F, 3)        int64    outward oriented
@@ -709,6 +710,13 @@ class GraspShard:
             return np.full((self.sizes["K"], self.sizes["G"]), np.nan)
         return self._experiments[f"metrics/{name}"].copy()
 
+    @property
+    def solver_settings(self) -> dict:
+        """The simulator settings the shard was made with (``GraspShardWriter.create(solver_settings=...)``);
+        {} for shards made before they were recorded (session 44)."""
+        text = self.attrs.get("solver_settings", "")
+        return json.loads(text) if text else {}
+
     # -------------------------------------------------------------- sizes
     @property
     def num_moduli(self) -> int:
@@ -764,6 +772,32 @@ class GraspShard:
         )
 
 
+def _settings_difference(partial: Path, settings_text: str) -> str | None:
+    """None where the unfinished shard ``partial`` was made with the solver settings ``settings_text``
+    (JSON; "" = none recorded), else which differ (``key: old -> new``, dotted paths, or that one side has
+    none)."""
+    with h5py.File(partial, "r") as f:
+        old_text = str(f.attrs.get("solver_settings", ""))
+    if old_text == settings_text:
+        return None
+    if not old_text or not settings_text:
+        return "recorded on one side only: made by another generator version?"
+    old, new = json.loads(old_text), json.loads(settings_text)
+
+    def flat(d: Mapping, prefix: str = "") -> dict:
+        out = {}
+        for k, v in d.items():
+            if isinstance(v, Mapping):
+                out.update(flat(v, f"{prefix}{k}."))
+            else:
+                out[f"{prefix}{k}"] = v
+        return out
+
+    a, b = flat(old), flat(new)
+    keys = sorted(k for k in a.keys() | b.keys() if a.get(k, "<none>") != b.get(k, "<none>"))
+    return ", ".join(f"{k}: {a.get(k, '<none>')} -> {b.get(k, '<none>')}" for k in keys)
+
+
 # ---------------------------------------------------------------------------------------------- writer
 class GraspShardWriter:
     """Incremental, resumable, atomic writer of one grasp shard.
@@ -813,6 +847,7 @@ class GraspShardWriter:
         config: str = "",
         overwrite: bool = False,
         experiments: ExperimentLayout | None = None,
+        solver_settings: Mapping | None = None,
     ) -> GraspShardWriter:
         """Start (or resume) the shard ``path`` (a ``.h5`` name; data go to ``<name>.partial.h5`` first).
 
@@ -826,6 +861,10 @@ class GraspShardWriter:
             overwrite: discard an existing final or partial file with different content.
             experiments: the experiments every entry will hold (creates ``/experiments``); None: squeeze
                 ramps only. A partial file made with other experiments or settings is not resumed.
+            solver_settings: the simulator settings that decide which equilibria the entries hold (a
+                JSON-serializable mapping, stored as the ``solver_settings`` attribute); a partial file made
+                with other ones (or without them) is not resumed, so a shard never mixes entries of two
+                settings. None: not recorded.
 
         Raises:
             FileExistsError: the final shard already exists (and not ``overwrite``).
@@ -873,13 +912,17 @@ class GraspShardWriter:
                     f"{path}: shard already finished (pass overwrite=True to regenerate it)"
                 )
             path.unlink()
+        settings_text = "" if solver_settings is None else json.dumps(dict(solver_settings), sort_keys=True)
         if partial.exists():
-            if cls._same_static(partial, static, obj, num_steps, experiments):
+            same = cls._same_static(partial, static, obj, num_steps, experiments)
+            differ = _settings_difference(partial, settings_text) if same else None
+            if same and differ is None:
                 return cls(partial, path, h5py.File(partial, "a"))
             if not overwrite:
+                what = f"solver settings ({differ})" if same else "object/material/grasp/experiment data"
                 raise ValueError(
-                    f"{partial}: an unfinished shard with different object/material/grasp/experiment data "
-                    "exists; delete it or pass overwrite=True"
+                    f"{partial}: an unfinished shard with different {what} exists; delete it or pass "
+                    "overwrite=True"
                 )
             partial.unlink()
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -891,6 +934,8 @@ class GraspShardWriter:
         f.attrs["object_category"] = obj.category
         f.attrs["object_source"] = obj.source
         f.attrs["config"] = str(config)
+        if settings_text:
+            f.attrs["solver_settings"] = settings_text
         f.attrs["created"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
         for name, arr in static.items():
             f.create_dataset(name, data=np.asarray(arr, dtype=_LAYOUT[name][1]))

@@ -70,7 +70,14 @@ from .experiments import (
 )
 from .gripper import FRANKA_HAND, ParallelJawGripper
 from .sampler import GraspSet, sample_antipodal_grasps
-from .squeeze import GRIP_DOF, finger_contact_poses, make_squeeze_solver, squeeze_ramp, squeeze_stream
+from .squeeze import (
+    GRIP_DOF,
+    finger_contact_poses,
+    make_squeeze_solver,
+    squeeze_ramp,
+    squeeze_solver_options,
+    squeeze_stream,
+)
 
 __all__ = [
     "STATUS_INVERTED",
@@ -87,6 +94,7 @@ __all__ = [
     "resolve_object_mesh",
     "run_experiments",
     "shard_grasp_indices",
+    "solver_settings",
     "structured_box",
     "time_grasp_experiments",
 ]
@@ -96,6 +104,39 @@ STATUS_INVERTED = 4  # converged, but with inverted tets (det F <= 0): not a phy
 # FEM has no self-contact, so a hollow object squeezed flat lets its walls pass through each other)
 STATUS_SELF_INTERSECTING = 7
 _log = logging.getLogger(__name__)
+
+#: SolverOptions fields that choose how the Newton systems are solved, not which equilibria the data hold (to
+#: round-off with the exact solvers): a shard may be resumed with other values (another device's defaults)
+_SOLVE_ONLY_FIELDS = frozenset(
+    {
+        "linear_solver",
+        "banded_min_problems",
+        "cg_rtol",
+        "cg_max_iterations",
+        "line_search_trials",
+        "max_factor_reuse",
+        "factor_reuse_contraction",
+        "record_tet_stress",
+    }
+)
+
+
+def solver_settings(squeeze: fem.SolverOptions, experiments: fem.SolverOptions | None = None) -> dict:
+    """The FEM settings a shard records (``solver_settings`` attribute) and must be resumed with: the squeeze
+    ramps' and, with experiments, the experiments' :class:`~defgraspnets.fem.SolverOptions`, without the
+    fields that only choose the linear solver and its tuning (``_SOLVE_ONLY_FIELDS``). A partial shard made
+    with other settings (e.g. before a default changed) is then not silently continued."""
+
+    def physics(options: fem.SolverOptions) -> dict:
+        fields = dataclasses.asdict(options)
+        # numbers as floats (1000 and 1000.0 are one setting), flags and names as they are
+        number = lambda v: isinstance(v, (int, float, np.number)) and not isinstance(v, (bool, np.bool_))  # noqa: E731
+        return {k: float(v) if number(v) else v for k, v in fields.items() if k not in _SOLVE_ONLY_FIELDS}
+
+    out = {"squeeze": physics(squeeze)}
+    if experiments is not None:
+        out["experiments"] = physics(experiments)
+    return out
 
 
 @dataclass
@@ -856,6 +897,8 @@ def generate_object_shards(
         shard_index: write only this shard (multirun / array jobs); None writes all ``shard_count``.
         device: Warp device ("cpu", "cuda", ...; None = Warp's default).
         solver_options: FEM settings (default :func:`~defgraspnets.grasp.squeeze.squeeze_solver_options`).
+            Recorded in each shard with the experiments' (:func:`solver_settings`): an unfinished shard made
+            with other settings is not resumed (ValueError naming them; ``overwrite`` starts it over).
         reject_inverted: mark converged problems with inverted tets as failed (:data:`STATUS_INVERTED`),
             and those whose object passes through itself at the last step (:data:`STATUS_SELF_INTERSECTING`).
         overwrite: regenerate finished shards and discard unfinished ones made with other settings.
@@ -951,6 +994,10 @@ def generate_object_shards(
     ramps = _Ramps(
         mesh, friction, max_force, steps, device, solver_options, reject_inverted, progress, gripper
     )
+    settings_record = solver_settings(
+        solver_options or squeeze_solver_options(),
+        (experiment_options or experiment_solver_options()) if names else None,
+    )
     results = []
     for i, path in paths.items():
         if path.exists() and not overwrite:
@@ -965,7 +1012,7 @@ def generate_object_shards(
         writer = GraspShardWriter.create(
             path, record, fingers, grasps.poses, fpose, closing, steps,
             generator_version=f"defgraspnets {__version__}", config=config_text, overwrite=overwrite,
-            experiments=layout,
+            experiments=layout, solver_settings=settings_record,
         )  # fmt: skip
         try:
             pending = writer.pending()
