@@ -10,6 +10,20 @@ from defgraspnets.grasp.squeeze import FINGER_NAMES, make_squeeze_solver, squeez
 SIZE = np.array([0.05, 0.04, 0.06])
 
 
+def _cube_first_step(indices, youngs_modulus: float, force: float = 0.3, **overrides) -> fem.Equilibrium:
+    """The first force step (``force`` [N]) of the 268-vertex fTetWild test cube (30 mm) squeezed by its
+    sampled grasps ``indices`` (of 100, seed 0, as the data path samples them), with the squeeze path's
+    options ("direct") and ``overrides``."""
+    from pathlib import Path
+
+    mesh = fem.TetMesh.load(Path(__file__).parent / "data" / "cuboid_30x30x30_ftetwild.vtu")
+    grasps = sample_antipodal_grasps(mesh, num_grasps=100, friction_coefficient=0.7, seed=0)[list(indices)]
+    material = fem.Material(youngs_modulus, 0.3, 1000.0, model="neohookean")
+    options = squeeze_solver_options(linear_solver="direct", **overrides)
+    solver = make_squeeze_solver(mesh, grasps, material, 0.7, device="cpu", options=options)
+    return squeeze_ramp(solver, force, 1)[-1]
+
+
 @pytest.fixture(scope="module")
 def ramp():
     mesh = fem.TetMesh.box(size=SIZE, divisions=(4, 3, 5), origin=-SIZE / 2)
@@ -296,19 +310,12 @@ def test_first_force_step_of_a_soft_faceted_cube_converges_with_the_friction_sti
     spend the data path's 200 Newton iterations of the step; with the squeeze path's stick zone of 5e-3 h
     both converge, in equilibrium (the pads press with F / 2 each, Coulomb holds at every contact), at the
     exact-friction equilibrium found with an unlimited budget to within 1 % in travel and stress."""
-    from pathlib import Path
-
-    mesh = fem.TetMesh.load(Path(__file__).parent / "data" / "cuboid_30x30x30_ftetwild.vtu")
-    grasps = sample_antipodal_grasps(mesh, num_grasps=100, friction_coefficient=0.7, seed=0)[[36, 56]]
     mu, force = 0.7, 0.3
-    material = fem.Material(1e4, 0.3, 1000.0, model="neohookean")
 
     def first_step(**overrides):
         # (measured with the late friction-lag check, before session 44: the early one converges the exact
         # stick zone's first step within the budget too)
-        options = squeeze_solver_options(linear_solver="direct", friction_lag_check=1, **overrides)
-        solver = make_squeeze_solver(mesh, grasps, material, mu, device="cpu", options=options)
-        return squeeze_ramp(solver, force, 1)[-1]
+        return _cube_first_step([36, 56], 1e4, force, friction_lag_check=1, **overrides)
 
     assert squeeze_solver_options().friction_stick_slip == 5e-3
     assert squeeze_solver_options().max_newton_per_solve == 200
@@ -613,20 +620,10 @@ def test_the_early_friction_lag_check_settles_a_stiff_first_contact_in_fewer_new
     and balance, Coulomb holds at every contact); grasp 0, which converges fast either way, ends with the
     same pad travel and stresses (to 1e-5). Grasp 96 lands elsewhere on the frictional path (pad travel 1.7 %
     apart), as other solver settings move such first contacts (``squeeze_solver_options``)."""
-    from pathlib import Path
-
-    mesh = fem.TetMesh.load(Path(__file__).parent / "data" / "cuboid_30x30x30_ftetwild.vtu")
-    grasps = sample_antipodal_grasps(mesh, num_grasps=100, friction_coefficient=0.7, seed=0)[[96, 0]]
     mu, force = 0.7, 0.3
-    material = fem.Material(1e7, 0.3, 1000.0, model="neohookean")
-
-    def first_step(**overrides):
-        options = squeeze_solver_options(linear_solver="direct", max_newton_first_step=0, **overrides)
-        solver = make_squeeze_solver(mesh, grasps, material, mu, device="cpu", options=options)
-        return squeeze_ramp(solver, force, 1)[-1]
-
     assert squeeze_solver_options().friction_lag_check == 1000
-    late, early = first_step(friction_lag_check=1), first_step()
+    late = _cube_first_step([96, 0], 1e7, force, max_newton_first_step=0, friction_lag_check=1)
+    early = _cube_first_step([96, 0], 1e7, force, max_newton_first_step=0)
     late.require_converged()
     early.require_converged()
     assert late.newton_iterations[0] > 200 and early.newton_iterations[0] <= 100  # measured 271 and 40
