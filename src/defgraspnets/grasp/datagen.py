@@ -127,11 +127,14 @@ def solver_settings(squeeze: fem.SolverOptions, experiments: fem.SolverOptions |
     fields that only choose the linear solver and its tuning (``_SOLVE_ONLY_FIELDS``). A partial shard made
     with other settings (e.g. before a default changed) is then not silently continued."""
 
+    def value(v):
+        """Numbers as floats (1000 and 1000.0 are one setting); flags, names and None as they are."""
+        number = isinstance(v, (int, float, np.number)) and not isinstance(v, (bool, np.bool_))
+        return float(v) if number else v
+
     def physics(options: fem.SolverOptions) -> dict:
         fields = dataclasses.asdict(options)
-        # numbers as floats (1000 and 1000.0 are one setting), flags and names as they are
-        number = lambda v: isinstance(v, (int, float, np.number)) and not isinstance(v, (bool, np.bool_))  # noqa: E731
-        return {k: float(v) if number(v) else v for k, v in fields.items() if k not in _SOLVE_ONLY_FIELDS}
+        return {k: value(v) for k, v in fields.items() if k not in _SOLVE_ONLY_FIELDS}
 
     out = {"squeeze": physics(squeeze)}
     if experiments is not None:
