@@ -113,6 +113,8 @@ def main(cfg: DictConfig) -> None:
                 "relag_friction_on_retry",
                 "banded_min_problems",
                 "line_search_trials",
+                "friction_lag_check",
+                "friction_stick_slip",
                 *cfg.solver,
             )
             if hasattr(options, k)
