@@ -1854,8 +1854,8 @@ class QuasiStaticSolver:
         self._unpack(self._q, self._positions, self._travel)
         self._contact_state(self._positions, self._travel)
         m = np.nonzero(mask)[0]
-        fn = self._c_force.numpy().reshape(B, S, K)[m]
-        nrm = self._c_normal.numpy().reshape(B, S, K, 3)[m]
+        fn = self._host_rows(self._c_force, S * K, m).reshape(len(m), S, K)
+        nrm = self._host_rows(self._c_normal, S * K, m).reshape(len(m), S, K, 3)
         out = np.zeros(B, dtype=bool)
         out[m] = pinched_vertices(fn, nrm).any(axis=1)
         return out
@@ -1962,9 +1962,9 @@ class QuasiStaticSolver:
         m = np.nonzero(mask)[0]
         lam_m = lam[m]
         w = lam_m[:, None, None]
-        nf = self._nodal_force.numpy().reshape(B, N, 3)
-        nf[m] = start["nodal_force"][m] + w * (end["nodal_force"][m] - start["nodal_force"][m])
-        self._nodal_force.assign(nf.reshape(-1, 3))
+        # (only the masked problems' rows travel to the device)
+        nf = start["nodal_force"][m] + w * (end["nodal_force"][m] - start["nodal_force"][m])
+        self._put_rows(self._nodal_force, N, m, nf)
         targets = start["dof"][m] + lam_m[:, None] * (end["dof"][m] - start["dof"][m])
         force_dofs = np.array([mode == "force" for mode in self.dof_mode], dtype=bool)
         moved = bool(D and not force_dofs.all()) or bool(self.fixed_mask.any())
