@@ -262,8 +262,10 @@ def squeeze_solver_options(**overrides) -> fem.SolverOptions:
     cylinder_r20_h40 and cone_rb25_rt10_h60 at 10 MPa 16 -> 16, annulus_ro45_ri35_h20 at 4.64 MPa 13 -> 16
     (5941 -> 5099), capsule_r20_l40 at 100 kPa 16 -> 16 (3479 -> 2913), cylinder_r20_h40 at 10 kPa 12 -> 12
     (4414 -> 3752; the same four force maxima), cuboid_30x30x30 at 21.5 kPa 12 -> 12 (6178 -> 5370; the same
-    four fail, two stalls and two force maxima before, four force maxima after). ``friction_lag_check=1``
-    gives the data sets before session 44.
+    four fail, two stalls and two force maxima before, four force maxima after); the data path's ~1000-vertex
+    meshes, 8 grasps each: torus_R30_r10 at 100 kPa 6 -> 8 (2996 -> 2726), ellipsoid_40x25x15 at 100 kPa,
+    cone_rb30_rt15_h50 at 10 MPa, bunny at 1 MPa and cylinder_r25_h100 at 46.4 kPa 8 -> 8 with 6-17 % fewer
+    Newton iterations. ``friction_lag_check=1`` gives the data sets before session 44.
     """
     overrides = {key: value for key, value in overrides.items() if value is not None}
     budget = overrides.get("max_newton_per_solve", 200)
