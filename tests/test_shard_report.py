@@ -14,7 +14,7 @@ import pytest
 from test_data_synthetic import make_shards
 
 from defgraspnets.data.grasp_schema import GraspShard
-from defgraspnets.data.shard_report import shard_summary, status_name
+from defgraspnets.data.shard_report import settings_note, shard_summary, status_name
 from defgraspnets.eval.metrics import ranking_agreement_across_moduli
 from defgraspnets.fem.results import SolveStatus
 from defgraspnets.grasp.datagen import STATUS_INVERTED
@@ -88,6 +88,7 @@ def test_grasp_data_report_script(shards, tmp_path):
     text = (tmp_path / "grasp_data_report.md").read_text()
     total = sum(row["ramps"] for row in rows)
     assert f"| **all** | – | {total - 1} | {total} | NONFINITE 1 |" in text
+    assert f"Solver settings: not recorded in the {len(rows)} shard(s)" in text  # synthetic shards
     missing = subprocess.run(
         [*cmd[:2], f"data_dir={tmp_path / 'nowhere'}", f"out_dir={tmp_path}"],
         env=env,
@@ -96,3 +97,17 @@ def test_grasp_data_report_script(shards, tmp_path):
         timeout=300,
     )
     assert missing.returncode != 0 and "nowhere" in missing.stderr
+
+
+def test_settings_note_names_the_shards_made_with_other_solver_settings():
+    """A data directory whose shards were simulated with different solver settings (a default changed
+    between runs) is flagged, naming the odd shards and what differs from the most common setting."""
+    early = {"squeeze": {"rtol": 1e-5, "friction_lag_check": 1000.0}}
+    late = {"squeeze": {"rtol": 1e-5, "friction_lag_check": 1.0}}
+    rows = [{"object": n, "solver_settings": early} for n in ("x", "y")]
+    assert settings_note(rows) == "Solver settings: the same in all 2 shard(s)."
+    note = settings_note([*rows, {"object": "z", "solver_settings": late}])
+    assert note.startswith("**Solver settings differ between shards**: 2 share the most common setting")
+    assert "z (squeeze.friction_lag_check: 1000.0 -> 1.0)" in note
+    assert "w (none recorded)" in settings_note([*rows, {"object": "w", "solver_settings": {}}])
+    assert "not recorded in the 1 shard(s)" in settings_note([{"object": "w", "solver_settings": {}}])

@@ -106,6 +106,7 @@ __all__ = [
     "ObjectRecord",
     "ShardSchemaError",
     "parse_shard_name",
+    "settings_difference",
     "shard_file_name",
 ]
 
@@ -772,17 +773,9 @@ class GraspShard:
         )
 
 
-def _settings_difference(partial: Path, settings_text: str) -> str | None:
-    """None where the unfinished shard ``partial`` was made with the solver settings ``settings_text``
-    (JSON; "" = none recorded), else which differ (``key: old -> new``, dotted paths, or that one side has
-    none)."""
-    with h5py.File(partial, "r") as f:
-        old_text = str(f.attrs.get("solver_settings", ""))
-    if old_text == settings_text:
-        return None
-    if not old_text or not settings_text:
-        return "recorded on one side only: made by another generator version?"
-    old, new = json.loads(old_text), json.loads(settings_text)
+def settings_difference(old: Mapping, new: Mapping) -> str:
+    """Which entries of two (nested) solver-settings mappings differ: ``key: old -> new`` with dotted paths,
+    joined by commas ("" where none does; ``<none>`` for an entry one side lacks)."""
 
     def flat(d: Mapping, prefix: str = "") -> dict:
         out = {}
@@ -796,6 +789,18 @@ def _settings_difference(partial: Path, settings_text: str) -> str | None:
     a, b = flat(old), flat(new)
     keys = sorted(k for k in a.keys() | b.keys() if a.get(k, "<none>") != b.get(k, "<none>"))
     return ", ".join(f"{k}: {a.get(k, '<none>')} -> {b.get(k, '<none>')}" for k in keys)
+
+
+def _settings_difference(partial: Path, settings_text: str) -> str | None:
+    """None where the unfinished shard ``partial`` was made with the solver settings ``settings_text``
+    (JSON; "" = none recorded), else which differ (:func:`settings_difference`, or that one side has none)."""
+    with h5py.File(partial, "r") as f:
+        old_text = str(f.attrs.get("solver_settings", ""))
+    if old_text == settings_text:
+        return None
+    if not old_text or not settings_text:
+        return "recorded on one side only: made by another generator version?"
+    return settings_difference(json.loads(old_text), json.loads(settings_text))
 
 
 # ---------------------------------------------------------------------------------------------- writer

@@ -6,6 +6,7 @@ consistently the ground truth ranks the grasps (a reference for the Kendall tau 
 
 from __future__ import annotations
 
+import json
 from collections import Counter
 
 import numpy as np
@@ -17,9 +18,9 @@ from defgraspnets.fem.results import SolveStatus
 from defgraspnets.grasp.datagen import STATUS_INVERTED, STATUS_SELF_INTERSECTING
 from defgraspnets.grasp.metrics import rigid_removed_deformation
 
-from .grasp_schema import GraspShard
+from .grasp_schema import GraspShard, settings_difference
 
-__all__ = ["report_markdown", "shard_summary", "status_name"]
+__all__ = ["report_markdown", "settings_note", "shard_summary", "status_name"]
 
 # codes of /ramp/status besides the solver's
 _EXTRA_STATUS = {STATUS_INVERTED: "INVERTED", STATUS_SELF_INTERSECTING: "SELF_INTERSECTING"}
@@ -71,6 +72,7 @@ def shard_summary(shard: GraspShard, progress: bool = False) -> dict:
         "stress_ranking_agreement": tau_s,
         "deformation_ranking_agreement": tau_d,
         "ranking_pairs": int(pairs),
+        "solver_settings": shard.solver_settings,
     }
 
 
@@ -87,8 +89,43 @@ _COLUMNS = (
 )
 
 
+def settings_note(rows: list[dict]) -> str:
+    """One line on the solver settings the shards were made with (``GraspShard.solver_settings``): one
+    setting, none recorded (shards before session 44), or which shards differ from the most common one and
+    how. A data set whose shards were simulated with different settings (a default changed between runs)
+    holds two kinds of equilibria; the line makes that visible."""
+    groups: dict[str, list[str]] = {}
+    for r in rows:
+        groups.setdefault(json.dumps(r.get("solver_settings", {}), sort_keys=True), []).append(r["object"])
+    if not groups:
+        return ""
+    if len(groups) == 1:
+        ((text, names),) = groups.items()
+        if text == "{}":
+            return f"Solver settings: not recorded in the {len(names)} shard(s) (made before session 44)."
+        return f"Solver settings: the same in all {len(names)} shard(s)."
+    common = max(groups, key=lambda t: len(groups[t]))
+    parts = []
+    for text, names in groups.items():
+        if text == common:
+            continue
+        if text == "{}":
+            what = "none recorded"
+        elif common == "{}":
+            what = "recorded; the others: none"
+        else:
+            what = settings_difference(json.loads(common), json.loads(text))
+        parts.append(f"{', '.join(sorted(names))} ({what})")
+    return (
+        f"**Solver settings differ between shards**: {len(groups[common])} share the most common setting; "
+        + "; ".join(parts)
+        + "."
+    )
+
+
 def report_markdown(rows: list[dict]) -> str:
-    """Markdown table of :func:`shard_summary` rows with a total line (agreements: mean over shards)."""
+    """Markdown table of :func:`shard_summary` rows with a total line (agreements: mean over shards) and a
+    line on their solver settings (:func:`settings_note`)."""
 
     def failures(status: dict) -> str:
         failed = {name: n for name, n in status.items() if name != SolveStatus.CONVERGED.name}
@@ -107,5 +144,5 @@ def report_markdown(rows: list[dict]) -> str:
     return (
         "## Grasp data\n\nτ across moduli: mean Kendall tau between the rankings of the same grasps (by "
         "mean von Mises stress, by mean rigid-removed deformation) at two Young's moduli and the same ramp "
-        "step.\n\n" + markdown_table(table, _COLUMNS) + "\n"
+        "step.\n\n" + markdown_table(table, _COLUMNS) + "\n\n" + settings_note(rows) + "\n"
     )
