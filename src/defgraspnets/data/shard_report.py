@@ -115,7 +115,7 @@ def settings_note(rows: list[dict]) -> str:
             what = "recorded; the others: none"
         else:
             what = settings_difference(json.loads(common), json.loads(text))
-        parts.append(f"{', '.join(sorted(names))} ({what})")
+        parts.append(f"{', '.join(sorted(set(names)))} ({what})")  # (an object's shards once)
     return (
         f"**Solver settings differ between shards**: {len(groups[common])} share the most common setting; "
         + "; ".join(parts)
