@@ -107,6 +107,7 @@ def level_blocks(graph: sp.csr_matrix, points: np.ndarray | None = None) -> tupl
     graph = sp.csr_matrix(graph)
     n = graph.shape[0]
     degree = np.diff(graph.indptr)
+    points = None if points is None else np.asarray(points, dtype=float)
     _, component = connected_components(graph, directed=False)
     order_parts, sizes = [], []
     for c in np.unique(component):
@@ -118,16 +119,18 @@ def level_blocks(graph: sp.csr_matrix, points: np.ndarray | None = None) -> tupl
             if farther[1][-1] <= level[-1]:
                 break
             order, level = farther
-        best = (_factor_cost(_merged_sizes(level)), order, level)
+        merged = _merged_sizes(level)
+        best = (_factor_cost(merged), order, merged)
         if points is not None and len(members) > 1:
-            for sources in _slab_sources(graph, members, np.asarray(points, dtype=float)):
+            for sources in _slab_sources(graph, members, points):
                 o, lv = _multi_source_levels(graph, sources)
-                cost = _factor_cost(_merged_sizes(lv))
+                swept = _merged_sizes(lv)
+                cost = _factor_cost(swept)
                 if cost < best[0]:
-                    best = (cost, o, lv)
-        _, order, level = best
+                    best = (cost, o, swept)
+        _, order, merged = best
         order_parts.append(order)
-        sizes.extend(_merged_sizes(level))
+        sizes.extend(merged)
     order = np.concatenate(order_parts)
     if len(order) != n or len(np.unique(order)) != n:
         raise RuntimeError("internal error: the level structure does not cover every vertex once")

@@ -994,13 +994,13 @@ def generate_object_shards(
         raise ValueError(
             f"{name}: only {len(all_grasps)} grasps could be sampled, fewer than shard_count={shard_count}"
         )
+    # the defaults resolved once: the settings a shard records are the ones its ramps and experiments use
+    solver_options = solver_options or squeeze_solver_options()
+    experiment_options = experiment_options or experiment_solver_options()
     ramps = _Ramps(
         mesh, friction, max_force, steps, device, solver_options, reject_inverted, progress, gripper
     )
-    settings_record = solver_settings(
-        solver_options or squeeze_solver_options(),
-        (experiment_options or experiment_solver_options()) if names else None,
-    )
+    settings_record = solver_settings(solver_options, experiment_options if names else None)
     results = []
     for i, path in paths.items():
         if path.exists() and not overwrite:
