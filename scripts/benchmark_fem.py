@@ -4,6 +4,7 @@
     python scripts/benchmark_fem.py device=cuda num_grasps=100        # GPU goal: 100 ramps <= 30 s
     python scripts/benchmark_fem.py profile_phases=true               # + seconds per Newton phase
     python scripts/benchmark_fem.py barrier=true                      # every grasp waits at every step
+    python scripts/benchmark_fem.py device=cuda profile_kernels=true  # + GPU busy time, top kernels, host ops
 
 The first (cold) call compiles and loads the Warp kernels; the timed run is a second, warm run on a fresh
 solver. Config: configs/benchmark_fem.yaml.
@@ -190,6 +191,20 @@ def main(cfg: DictConfig) -> None:
         record["phases"] = phases.summary()
         out.write_text(json.dumps(record, indent=2) + "\n")
         print("phases [s]:", {k: v["seconds"] for k, v in record["phases"].items() if k != "wall_seconds"})
+    if cfg.profile_kernels:
+        # and again under PyTorch's profiler: how busy the GPU is, its kernels, the host's operations
+        from defgraspnets.fem.profiling import KernelProfile
+
+        solver = make_squeeze_solver(mesh, grasps, material, cfg.friction, device=device, options=options)
+        with KernelProfile(device) as profile:
+            squeeze_ramp(solver, cfg.max_force, cfg.steps, progress=cfg.progress, barrier=cfg.barrier)
+        record["kernel_profile"] = profile.summary(passes=solver.newton_passes)
+        out.write_text(json.dumps(record, indent=2) + "\n")
+        kp = record["kernel_profile"]
+        print(
+            f"profiled: {kp['wall_seconds']} s, GPU busy {kp['gpu_busy_seconds']} s "
+            f"({kp['gpu_busy_fraction']}), {kp['gpu_kernels']} kernels"
+        )
     print(
         json.dumps(
             {

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from defgraspnets import fem
-from defgraspnets.fem.profiling import PHASES, PhaseTimer
+from defgraspnets.fem.profiling import PHASES, PhaseTimer, busy_seconds
 from defgraspnets.grasp.datagen import structured_box
 from defgraspnets.grasp.sampler import sample_antipodal_grasps
 from defgraspnets.grasp.squeeze import make_squeeze_solver, squeeze_ramp
@@ -40,6 +40,7 @@ def test_benchmark_fem_writes_per_step_and_per_grasp_records(tmp_path):
         tmp_path,
         *TINY,
         "profile_phases=true",
+        "profile_kernels=true",
         "contact_smoothing=0.005",
         "+solver.friction_stick_slip=0.01",
     )
@@ -68,6 +69,19 @@ def test_benchmark_fem_writes_per_step_and_per_grasp_records(tmp_path):
     assert phases["linear_solve"]["calls"] >= per_grasp.max()
     total = sum(v["seconds"] for k, v in phases.items() if k != "wall_seconds")
     assert abs(total - phases["wall_seconds"]) < 1e-3 and phases["other"]["seconds"] >= 0
+    # the run under PyTorch's profiler: on the CPU no GPU kernels, the dense solver's Cholesky among the
+    # host's operations, and the same Newton passes as the timed run (a problem's path is deterministic)
+    profile = record["kernel_profile"]
+    assert profile["gpu_kernels"] == 0 and profile["gpu_busy_seconds"] == 0 and profile["top_kernels"] == []
+    assert profile["passes"] == record["newton_passes"] > 0 and profile["wall_seconds"] > 0
+    host = {op["name"]: op for op in profile["top_host_ops"]}
+    assert "aten::linalg_cholesky_ex" in host and host["aten::linalg_cholesky_ex"]["calls"] > 0
+
+
+def test_busy_seconds_counts_overlapping_kernels_once():
+    assert busy_seconds([]) == 0.0
+    # [0, 2] and [1, 3] overlap into [0, 3]; [3, 4] touches it; [5, 5.5] stands alone; [0.5, 1] lies inside
+    assert busy_seconds([(5.0, 5.5), (1.0, 3.0), (0.0, 2.0), (3.0, 4.0), (0.5, 1.0)]) == 4.5
 
 
 def test_phase_timer_counts_one_linear_solve_per_newton_iteration_and_restores_the_solver():

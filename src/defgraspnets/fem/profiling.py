@@ -11,6 +11,15 @@ whatever asynchronous work happened to finish inside it. A phase called inside a
 the reaction forces inside ``results``) counts for itself only, not for the outer phase too. The
 synchronization costs time itself: profile a run, then time it without the timer
 (``scripts/benchmark_fem.py profile_phases=true`` records both).
+
+Whether the GPU or the host is the limit (:class:`KernelProfile`, ``profile_kernels=true``): PyTorch's
+profiler (CUPTI) records every kernel the process runs, Warp's included, with its start and end on the GPU.
+The union of those intervals against the wall time says how busy the GPU was; the host's busiest operations
+(self time per PyTorch op and CUDA runtime call, such as ``cudaLaunchKernel``) say what the host did instead.
+
+    with KernelProfile(solver.device) as profile:
+        squeeze_ramp(solver, 15.0, 50)
+    profile.summary(passes=solver.newton_passes)  # {"gpu_busy_fraction": ..., "top_kernels": [...], ...}
 """
 
 from __future__ import annotations
@@ -92,6 +101,93 @@ class PhaseTimer:
         out = {p: {"seconds": round(self.seconds[p], 4), "calls": self.calls[p]} for p in PHASES}
         out["other"] = {"seconds": round(self.wall - sum(self.seconds.values()), 4), "calls": 0}
         out["wall_seconds"] = round(self.wall, 4)
+        return out
+
+
+def busy_seconds(intervals) -> float:
+    """Length of the union of ``(start, end)`` intervals (overlaps counted once), in their unit."""
+    total, end = 0.0, None
+    for lo, hi in sorted(intervals):
+        if end is None or lo > end:
+            total += hi - lo
+            end = hi
+        elif hi > end:
+            total += hi - end
+            end = hi
+    return total
+
+
+class KernelProfile:
+    """Context manager: PyTorch's profiler around a run on ``device`` (module docstring).
+
+    CUDA activities are recorded where ``device`` is a CUDA device; on the CPU only the host's operations
+    are (then ``gpu_kernels`` is 0). The device is synchronized at entry and exit, so the wall time holds
+    the run's own GPU work. The profiler's own overhead lengthens the run: time it without the profile.
+    """
+
+    def __init__(self, device, top: int = 25):
+        self.device = wp.get_device(device)
+        self.top = int(top)
+        self.wall = 0.0
+        self._profiler = None
+
+    def __enter__(self) -> KernelProfile:
+        from torch.profiler import ProfilerActivity, profile
+
+        activities = [ProfilerActivity.CPU]
+        if self.device.is_cuda:
+            activities.append(ProfilerActivity.CUDA)
+        synchronize(self.device)
+        self._profiler = profile(activities=activities)
+        self._profiler.__enter__()
+        self._start = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        synchronize(self.device)
+        self.wall = time.perf_counter() - self._start
+        self._profiler.__exit__(*exc)
+
+    def summary(self, passes: int | None = None) -> dict:
+        """Wall seconds; GPU kernels, their busy seconds (union of their intervals), busy fraction of the
+        wall time and of the span from the first kernel's start to the last one's end; the ``top`` kernels
+        by GPU time and the ``top`` host operations by self CPU time; per pass where ``passes`` is given."""
+        from torch.autograd import DeviceType
+
+        kernels = [e for e in self._profiler.events() if e.device_type == DeviceType.CUDA]
+        spans = [(e.time_range.start * 1e-6, e.time_range.end * 1e-6) for e in kernels]
+        busy = busy_seconds(spans)
+        span = (max(hi for _, hi in spans) - min(lo for lo, _ in spans)) if spans else 0.0
+        by_name: dict[str, list] = defaultdict(lambda: [0, 0.0])
+        for e, (lo, hi) in zip(kernels, spans):
+            by_name[e.name][0] += 1
+            by_name[e.name][1] += hi - lo
+        top_kernels = sorted(by_name.items(), key=lambda kv: -kv[1][1])[: self.top]
+        host = sorted(
+            (a for a in self._profiler.key_averages() if a.self_cpu_time_total > 0),
+            key=lambda a: -a.self_cpu_time_total,
+        )[: self.top]
+        out = {
+            "wall_seconds": round(self.wall, 4),
+            "gpu_kernels": len(kernels),
+            "gpu_busy_seconds": round(busy, 4),
+            "gpu_busy_fraction": round(busy / self.wall, 4) if self.wall > 0 else None,
+            "kernel_span_seconds": round(span, 4),
+            "gpu_busy_fraction_of_span": round(busy / span, 4) if span > 0 else None,
+            "top_kernels": [
+                {"name": name[:160], "calls": n, "seconds": round(t, 5), "mean_us": round(1e6 * t / n, 2)}
+                for name, (n, t) in top_kernels
+            ],
+            "top_host_ops": [
+                {"name": a.key[:160], "calls": a.count, "self_seconds": round(a.self_cpu_time_total * 1e-6, 5)}
+                for a in host
+            ],
+        }
+        if passes:
+            out["passes"] = int(passes)
+            out["gpu_kernels_per_pass"] = round(len(kernels) / passes, 2)
+            out["wall_ms_per_pass"] = round(1e3 * self.wall / passes, 3)
+            out["gpu_busy_ms_per_pass"] = round(1e3 * busy / passes, 3)
         return out
 
 
