@@ -44,7 +44,7 @@ def main(cfg: DictConfig) -> None:
     grasps = sample_antipodal_grasps(mesh, 100, friction_coefficient=0.7, rotations_per_axis=4, seed=0)
     material = fem.Material(float(cfg.youngs_modulus), 0.3, 1000.0, model="neohookean")
     overrides = OmegaConf.to_container(cfg.solver, resolve=True) or {}
-    options = squeeze_solver_options(linear_solver="direct", **overrides)
+    options = squeeze_solver_options(**{"linear_solver": "direct", **overrides})
     steps, max_force = int(cfg.steps), float(cfg.max_force)
     print(f"{cfg.object}: {mesh.num_vertices} vertices, E = {cfg.youngs_modulus:g} Pa", flush=True)
     results = []
@@ -94,7 +94,7 @@ def main(cfg: DictConfig) -> None:
             keep = {k: v for k, v in overrides.items() if k.startswith("self_contact")}  # the walk's too
             walk = {"force_maximum_runaway": 0.0, "max_newton_per_solve": 400, **keep}
             walk.update(OmegaConf.to_container(cfg.travel_solver, resolve=True) or {})
-            walk = squeeze_solver_options(linear_solver="direct", **walk)
+            walk = squeeze_solver_options(**{"linear_solver": "direct", **walk})
             r["travel_path"] = travel_controlled_path(
                 mesh, grasp, material, travels, options=walk, trace=bool(cfg.trace)
             )

@@ -58,11 +58,13 @@ log = logging.getLogger(__name__)
 LINEAR_SOLVERS = ("auto", "cg", "amg", "direct", "dense", "banded", "dense_banded")
 # the linear solvers that factor each problem's Hessian (exact; factors can be kept for chord Newton)
 FACTORIZING_SOLVERS = ("direct", "dense", "banded", "dense_banded")
-# the linear solvers that add self-contact's vertex-triangle couplings (outside the block pattern) to their
-# matrix; the others would see only the pattern's blocks, with which Newton does not converge (two pressed
-# blocks: 4400 iterations for the first contact increment with "amg" or "banded", 46 for the whole press
-# with "direct" or "dense")
-SELF_CONTACT_SOLVERS = ("direct", "dense")
+# the linear solvers that solve with self-contact's vertex-triangle couplings (outside the block pattern):
+# "direct" and "dense" add them to the matrix they factor, "banded" (and "dense_banded") factors the
+# pattern and solves the whole matrix by CG preconditioned with that factor (BatchedSystem._solve_coupled);
+# CG and AMG would see only the pattern's blocks, with which Newton does not converge (two pressed blocks:
+# 4400 iterations for the first contact increment with "amg", or "banded" before session 45, 46 for the
+# whole press with the couplings)
+SELF_CONTACT_SOLVERS = ("direct", "dense", "banded", "dense_banded")
 # Levenberg-Marquardt damping of a rejected exact-Hessian step, in units of E h on the vertex diagonal:
 # it starts at LM_START, x10 per rejection up to LM_MAX, /3 per accepted full step, dropped below LM_MIN
 LM_START, LM_MAX, LM_MIN = 1e-3, 0.1, 1e-6
@@ -358,9 +360,9 @@ class SolverOptions:
             is not near at rest, with the rigid contact's penalty law at s times its stiffness (s = 1: the
             same pressure stiffness kappa E / h and penetration tolerance). 0 (default): off, bit for bit as
             before. Pairs are found per Newton iteration with one Warp BVH per problem. Its Hessian couples
-            vertices outside the FEM block pattern: needs linear_solver "direct" or "dense" ("auto" picks
-            "direct" where it would pick an iterative solver), which add those couplings to the matrix they
-            factor; the others would not converge (``SELF_CONTACT_SOLVERS``).
+            vertices outside the FEM block pattern: needs linear_solver "direct", "dense", "banded" or
+            "dense_banded" ("auto" picks "direct" where it would pick an iterative solver), which solve with
+            those couplings; CG and AMG would not converge (``SELF_CONTACT_SOLVERS``).
         self_contact_model: how a vertex's penetration of the surface is measured (``self_contact.py``):
             "prism" (default): the depth below the least deep candidate triangle whose prism holds the
             vertex; "feature": the distance to the nearest candidate triangle, closed (edges and corners),
@@ -435,9 +437,10 @@ class SolverOptions:
         if sc > 0 and self.linear_solver not in ("auto", *SELF_CONTACT_SOLVERS):
             # refused here, before a caller (the grasp generator) writes anything
             raise ValueError(
-                f"SolverOptions.self_contact needs linear_solver 'direct', 'dense' or 'auto', got "
-                f"{self.linear_solver!r}: self-contact couples vertices outside the FEM block pattern, which "
-                "only those factorizations hold (without the couplings Newton does not converge)"
+                f"SolverOptions.self_contact needs linear_solver 'direct', 'dense', 'banded', "
+                f"'dense_banded' or 'auto', got {self.linear_solver!r}: self-contact couples vertices "
+                "outside the FEM block pattern, which only those solvers solve with (without the couplings "
+                "Newton does not converge)"
             )
         if not (np.isfinite(self.stabilization) and self.stabilization >= 0):
             raise ValueError(f"SolverOptions.stabilization must be >= 0, got {self.stabilization!r}")

@@ -128,6 +128,11 @@ def constrain_system_kernel(
 # float64 Cholesky: one problem 1.5 ms; a batch of k costs about 7 + 1.0 k ms (2: 8.7, 16: 22.6, 64: 73.6 ms)
 DENSE_LOOP_MAX_PROBLEMS = 12
 
+#: conjugate gradients on the whole matrix with the banded factor of the pattern alone (self-contact
+#: couplings, BatchedSystem._solve_coupled): relative residual goal and iteration cap per problem
+COUPLED_RTOL = 1e-10
+COUPLED_MAX_ITERATIONS = 100
+
 
 class BatchedSystem:
     """BSR Hessian, gradient and increment of B problems with a shared pattern, and their solvers."""
@@ -171,6 +176,7 @@ class BatchedSystem:
         self._banded_layout = None  # BlockTridiagonalLayout of the pattern
         self._banded_scatter = None  # its (source, target) indices as tensors on the device
         self._product = None  # H increment of the banded solver's residual check (allocated on first use)
+        self._pattern_index = None  # the pattern's block rows and columns as tensors (coupled products)
         # factorizations of the direct, dense and banded solvers, per problem: SuperLU objects, and
         # ("cholesky", L), ("banded", BlockTridiagonalFactor, position in it) or LU fallbacks
         # ("lu", LU, pivots); see ``keep_factors``
@@ -200,8 +206,9 @@ class BatchedSystem:
         #: symmetric couplings outside the block pattern (self-contact between vertices that are no mesh
         #: neighbours), or None: (rows, cols, blocks) Warp arrays of C entries per problem, problem-local
         #: block rows and columns (C,) ... (B C,) int32 and (B C,) mat33d; each block adds (row, col) and its
-        #: transpose at (col, row). Only the direct and dense solvers add them to the matrix they factor
-        #: (the banded, CG and AMG solvers work on the pattern alone)
+        #: transpose at (col, row). The direct and dense solvers add them to the matrix they factor; the
+        #: banded solver factors the pattern alone and solves the whole matrix by conjugate gradients
+        #: preconditioned with that factor (:meth:`_solve_coupled`); CG and AMG lack them
         self.coupling = None
 
     def zero(self):
@@ -321,6 +328,8 @@ class BatchedSystem:
         todo = np.nonzero(np.abs(b_all).max(axis=1) > 0)[0].tolist()
         fresh = set(self._to_factor(todo, self._direct_factors, refactor))
         coupling = self._coupling_entries() if fresh else None
+        if coupling is not None:
+            coupling = [a.cpu().numpy() for a in coupling]
         for p in todo:
             if p in fresh:
                 A = sp.bsr_matrix((values[p], cols, offsets), shape=(n, n)).tocsc()
@@ -337,17 +346,20 @@ class BatchedSystem:
         return 1, float(np.sqrt(residual2))
 
     def _coupling_entries(self):
-        """(rows, cols, values) of :attr:`coupling`'s scalar entries per problem ((B, 9 C) each), or None."""
+        """(rows, cols, values) of :attr:`coupling`'s scalar entries per problem ((B, 9 C) each), as
+        tensors on the system's device (read after Warp's assembly has finished), or None."""
         if self.coupling is None:
             return None
+        import torch
+
         rows, cols, blocks = self.coupling
         B = self.batch_size
-        r = rows.numpy().reshape(B, -1).astype(np.int64)
-        c = cols.numpy().reshape(B, -1).astype(np.int64)
-        k = np.arange(3)
-        rr = (r[:, :, None, None] * 3 + k[None, None, :, None]) + 0 * k[None, None, None, :]
-        cc = (c[:, :, None, None] * 3 + k[None, None, None, :]) + 0 * k[None, None, :, None]
-        v = blocks.numpy().reshape(B, -1, 3, 3)
+        r = wp.to_torch(rows).view(B, -1, 1, 1).long()
+        c = wp.to_torch(cols).view(B, -1, 1, 1).long()
+        k = torch.arange(3, device=r.device)
+        rr = (r * 3 + k.view(1, 1, 3, 1)).expand(-1, -1, 3, 3)
+        cc = (c * 3 + k.view(1, 1, 1, 3)).expand(-1, -1, 3, 3)
+        v = wp.to_torch(blocks).view(B, -1, 3, 3)
         return rr.reshape(B, -1), cc.reshape(B, -1), v.reshape(B, -1)
 
     def _torch_solve_start(self, refactor, todo: list[int] | None = None):
@@ -442,8 +454,6 @@ class BatchedSystem:
         chunk = max(1, int(budget // bytes_per_problem))
         worst = 0.0 if residual else float("nan")
         coupling = self._coupling_entries() if fresh else None
-        if coupling is not None:
-            coupling = [torch.as_tensor(a, device=dev) for a in coupling]
         for ids in [fresh[i : i + chunk] for i in range(0, len(fresh), chunk)]:
             index = torch.as_tensor(ids, device=dev)
             A = self._dense_matrices(values, index)
@@ -587,11 +597,21 @@ class BatchedSystem:
                 for k, p in enumerate(singular):
                     self._dense_factors[p] = ("lu", *torch.linalg.lu_factor(A[k]))
                 del A
+        coupling = None
         if todo:
             x = self._dense_substitute(todo, rhs)
+            if self.coupling is not None:
+                coupling = self._coupling_entries()
+                x = self._solve_coupled(todo, rhs, x, values, coupling)
             self._store_solution(increment, torch.as_tensor(todo, device=dev), x)
-        if fresh:
-            worst = self._relative_residual(fresh) if residual else float("nan")
+        if fresh and residual:
+            worst = (
+                self._relative_residual(fresh)
+                if coupling is None
+                else self._coupled_residual(fresh, rhs, increment, values, coupling)
+            )
+        elif fresh:
+            worst = float("nan")
         if dev.type == "cuda":
             torch.cuda.synchronize(dev)
         return 1, worst
@@ -636,15 +656,21 @@ class BatchedSystem:
         factors: one batched substitution per factorization batch. LU: one solve each."""
         import torch
 
-        b = rhs[torch.as_tensor(ids, device=rhs.device)]
-        if rhs.dim() == 2:
+        return self._substitute(ids, rhs[torch.as_tensor(ids, device=rhs.device)])
+
+    def _substitute(self, ids: list[int], b):
+        """:meth:`_dense_substitute` of right-hand sides ``b`` (len(ids), n[, k]) already gathered."""
+        import torch
+
+        vector = b.dim() == 2
+        if vector:
             b = b.unsqueeze(2)
         x = torch.empty_like(b)
         factors = [self._dense_factors[p] for p in ids]
         chol = [k for k, f in enumerate(factors) if f[0] == "cholesky"]
-        if rhs.device.type == "cuda" and len(chol) > 1:
+        if b.device.type == "cuda" and len(chol) > 1:
             L = torch.stack([factors[k][1] for k in chol])
-            k = torch.as_tensor(chol, device=rhs.device)
+            k = torch.as_tensor(chol, device=b.device)
             y = torch.linalg.solve_triangular(L, b[k], upper=False)
             x[k] = torch.linalg.solve_triangular(L.transpose(1, 2), y, upper=True)
         else:
@@ -661,11 +687,100 @@ class BatchedSystem:
                 group[1].append(k)
                 group[2].append(f[2])
         for factor, ks, positions in groups.values():
-            k = torch.as_tensor(ks, device=rhs.device)
+            k = torch.as_tensor(ks, device=b.device)
             everything = positions == list(range(len(factor.failed)))
-            rows = None if everything else torch.as_tensor(positions, device=rhs.device)
+            rows = None if everything else torch.as_tensor(positions, device=b.device)
             x[k] = factor.solve(b[k], rows)
-        return x.squeeze(2) if rhs.dim() == 2 else x
+        return x.squeeze(2) if vector else x
+
+    def _coupled_product(self, values, index, coupling, x):
+        """(m, n) products with ``x`` (m, n) of the whole matrices of the problems ``index`` (a LongTensor):
+        the pattern's blocks ``values`` plus the couplings and their transposes (``coupling``: their scalar
+        entries, :meth:`_coupling_entries`)."""
+        import torch
+
+        if self._pattern_index is None:
+            self._pattern_index = tuple(
+                torch.as_tensor(a.astype(np.int64), device=x.device)
+                for a in (self.pattern.rows, self.pattern.cols)
+            )
+        rows, cols = self._pattern_index
+        m, n = x.shape
+        blocks = values.index_select(0, index).view(m, -1, 3, 3)
+        xv = x.view(m, n // 3, 3)
+        y = torch.zeros_like(xv).index_add_(1, rows, torch.einsum("mkij,mkj->mki", blocks, xv[:, cols]))
+        y = y.view(m, n)
+        r, c, v = (a.index_select(0, index) for a in coupling)
+        y.scatter_add_(1, r, v * torch.gather(x, 1, c))
+        y.scatter_add_(1, c, v * torch.gather(x, 1, r))
+        return y
+
+    def _solve_coupled(self, ids: list[int], rhs, x, values, coupling):
+        """Solutions of the problems ``ids`` with their whole matrices (the pattern's blocks and the
+        couplings outside it), by conjugate gradients preconditioned with their stored factors of the
+        pattern alone, from ``x`` (those factors' solutions; (len(ids), n[, k]) as :meth:`_dense_substitute`).
+
+        The couplings (self-contact between vertices that are no mesh neighbours) have low rank: k pairs
+        change the matrix in at most 12 k directions, so CG ends in a few iterations where the factor is
+        fresh (exactly in at most 12 k + 1). Each problem stops at a relative residual of
+        :data:`COUPLED_RTOL` or after :data:`COUPLED_MAX_ITERATIONS` (then keeps its last iterate: the
+        Newton loop checks its own residual). On the CPU one problem at a time, so that a problem's answer
+        does not depend on its batch; on CUDA all at once."""
+        import torch
+
+        dev = x.device
+        vector = x.dim() == 2
+        b_all = rhs[torch.as_tensor(ids, device=dev)]
+        if vector:
+            x, b_all = x.unsqueeze(2), b_all.unsqueeze(2)
+        groups = [list(range(len(ids)))] if dev.type == "cuda" else [[k] for k in range(len(ids))]
+        out = x.clone()
+        for group in groups:
+            k = torch.as_tensor(group, device=dev)
+            index = torch.as_tensor([ids[g] for g in group], device=dev)
+            for column in range(x.shape[2]):
+                out[k, :, column] = self._pcg(
+                    [ids[g] for g in group], index, values, coupling, b_all[k, :, column], x[k, :, column]
+                )
+        return out.squeeze(2) if vector else out
+
+    def _pcg(self, ids, index, values, coupling, b, x):
+        """Preconditioned CG (:meth:`_solve_coupled`) of (m, n) right-hand sides ``b`` from ``x``."""
+        import torch
+
+        tiny = torch.finfo(torch.float64).tiny
+        goal = COUPLED_RTOL * torch.linalg.vector_norm(b, dim=1)
+        r = b - self._coupled_product(values, index, coupling, x)
+        z = self._substitute(ids, r)
+        p = z.clone()
+        rz = (r * z).sum(dim=1)
+        for _ in range(COUPLED_MAX_ITERATIONS):
+            going = torch.linalg.vector_norm(r, dim=1) > goal
+            if not bool(going.any()):
+                break
+            q = self._coupled_product(values, index, coupling, p)
+            curvature = (p * q).sum(dim=1)
+            alpha = torch.where(going & (curvature > 0), rz / curvature.clamp_min(tiny), 0.0)
+            x = x + alpha[:, None] * p
+            r = r - alpha[:, None] * q
+            z = self._substitute(ids, r)
+            rz_next = (r * z).sum(dim=1)
+            beta = torch.where(going, rz_next / torch.where(rz != 0, rz, 1.0), 0.0)
+            p = z + beta[:, None] * p
+            rz = rz_next
+            if not bool((going & (curvature > 0)).any()):
+                break  # no direction of positive curvature left (not positive definite): keep x
+        return x
+
+    def _coupled_residual(self, problems: list[int], rhs, increment, values, coupling) -> float:
+        """max over ``problems`` of |K increment - rhs| / |rhs| with the whole matrices K."""
+        import torch
+
+        index = torch.as_tensor(problems, device=increment.device)
+        b = rhs[index] if rhs.dim() == 2 else rhs[index, :, 0]
+        res = self._coupled_product(values, index, coupling, increment[index]) - b
+        norm = torch.linalg.vector_norm(b, dim=1).clamp_min(torch.finfo(torch.float64).tiny)
+        return float((torch.linalg.vector_norm(res, dim=1) / norm).max())
 
     def solve_amg(self, near_nullspace: np.ndarray, rtol: float, maxiter: int) -> tuple[int, float]:
         """CG preconditioned by smoothed-aggregation algebraic multigrid (pyamg) on the host, with the
