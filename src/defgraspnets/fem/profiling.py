@@ -179,7 +179,11 @@ class KernelProfile:
                 for name, (n, t) in top_kernels
             ],
             "top_host_ops": [
-                {"name": a.key[:160], "calls": a.count, "self_seconds": round(a.self_cpu_time_total * 1e-6, 5)}
+                {
+                    "name": a.key[:160],
+                    "calls": a.count,
+                    "self_seconds": round(a.self_cpu_time_total * 1e-6, 5),
+                }
                 for a in host
             ],
         }
