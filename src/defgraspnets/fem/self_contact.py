@@ -32,11 +32,11 @@ holds only (v, v) and the triangle's (i, j) (tet edges); the (v, i) couplings ar
 ``SelfContact.coupling`` and the "direct" and "dense" linear solvers add them to the matrix they factor
 (``BatchedSystem.coupling``): the whole Gauss-Newton Hessian. The banded solver's block-tridiagonal
 structure cannot hold couplings between distant vertices: it factors the pattern's blocks and solves the
-whole Hessian by conjugate gradients preconditioned with that factor (the couplings have low rank, so a few
-iterations). With the pattern's blocks alone (still PSD, so Newton's direction still descends) Newton
-crawls: on two pressed blocks the banded and AMG solvers needed 4400 iterations for the first contact
-increment, not converged, against 46 for the whole press with the couplings; so self-contact is refused
-with the CG and AMG solvers.
+whole Hessian by a low-rank (Woodbury) update of that factor's solutions (the couplings touch only the
+pairs' unknowns: ``BatchedSystem._solve_coupled``). With the pattern's blocks alone (still PSD, so Newton's
+direction still descends) Newton crawls: on two pressed blocks the banded and AMG solvers needed 4400
+iterations for the first contact increment, not converged, against 46 for the whole press with the
+couplings; so self-contact is refused with the CG and AMG solvers.
 
 Models (``SolverOptions.self_contact_model``). The above is "prism" (the default). Its penalty is
 discontinuous where a vertex passes between the prisms of two non-coplanar triangles: at a concave crease of

@@ -60,7 +60,7 @@ LINEAR_SOLVERS = ("auto", "cg", "amg", "direct", "dense", "banded", "dense_bande
 FACTORIZING_SOLVERS = ("direct", "dense", "banded", "dense_banded")
 # the linear solvers that solve with self-contact's vertex-triangle couplings (outside the block pattern):
 # "direct" and "dense" add them to the matrix they factor, "banded" (and "dense_banded") factors the
-# pattern and solves the whole matrix by CG preconditioned with that factor (BatchedSystem._solve_coupled);
+# pattern and adds them by a low-rank update of its solutions (BatchedSystem._solve_coupled);
 # CG and AMG would see only the pattern's blocks, with which Newton does not converge (two pressed blocks:
 # 4400 iterations for the first contact increment with "amg", or "banded" before session 45, 46 for the
 # whole press with the couplings)

@@ -128,11 +128,6 @@ def constrain_system_kernel(
 # float64 Cholesky: one problem 1.5 ms; a batch of k costs about 7 + 1.0 k ms (2: 8.7, 16: 22.6, 64: 73.6 ms)
 DENSE_LOOP_MAX_PROBLEMS = 12
 
-#: conjugate gradients on the whole matrix with the banded factor of the pattern alone (self-contact
-#: couplings, BatchedSystem._solve_coupled): relative residual goal and iteration cap per problem
-COUPLED_RTOL = 1e-10
-COUPLED_MAX_ITERATIONS = 100
-
 
 class BatchedSystem:
     """BSR Hessian, gradient and increment of B problems with a shared pattern, and their solvers."""
@@ -207,8 +202,8 @@ class BatchedSystem:
         #: neighbours), or None: (rows, cols, blocks) Warp arrays of C entries per problem, problem-local
         #: block rows and columns (C,) ... (B C,) int32 and (B C,) mat33d; each block adds (row, col) and its
         #: transpose at (col, row). The direct and dense solvers add them to the matrix they factor; the
-        #: banded solver factors the pattern alone and solves the whole matrix by conjugate gradients
-        #: preconditioned with that factor (:meth:`_solve_coupled`); CG and AMG lack them
+        #: banded solver factors the pattern alone and adds them by a low-rank update of its solutions
+        #: (:meth:`_solve_coupled`); CG and AMG lack them
         self.coupling = None
 
     def zero(self):
@@ -417,6 +412,18 @@ class BatchedSystem:
         A[:, self._dense_index] = values[index]
         return A.view(len(index), n, n)
 
+    def _whole_matrices(self, values, index, coupling):
+        """:meth:`_dense_matrices` plus the couplings outside the pattern and their transposes
+        (``coupling``: :meth:`_coupling_entries`, or None)."""
+        A = self._dense_matrices(values, index)
+        if coupling is not None:
+            n = A.shape[1]
+            r, c, v = (a[index] for a in coupling)
+            flat = A.view(len(index), n * n)
+            flat.scatter_add_(1, r * n + c, v)
+            flat.scatter_add_(1, c * n + r, v)
+        return A
+
     def solve_dense(
         self,
         refactor: np.ndarray | None = None,
@@ -453,15 +460,10 @@ class BatchedSystem:
             budget = 2e9
         chunk = max(1, int(budget // bytes_per_problem))
         worst = 0.0 if residual else float("nan")
-        coupling = self._coupling_entries() if fresh else None
+        coupling = self._coupling_entries()
         for ids in [fresh[i : i + chunk] for i in range(0, len(fresh), chunk)]:
             index = torch.as_tensor(ids, device=dev)
-            A = self._dense_matrices(values, index)
-            if coupling is not None:
-                r, c, v = (a[index] for a in coupling)
-                flat = A.view(len(ids), n * n)
-                flat.scatter_add_(1, r * n + c, v)
-                flat.scatter_add_(1, c * n + r, v)
+            A = self._whole_matrices(values, index, coupling)
             if len(ids) <= DENSE_LOOP_MAX_PROBLEMS:
                 # a few problems: one factorization each (cuSOLVER's batched potrf has a large fixed cost)
                 factors = [torch.linalg.cholesky_ex(A[k]) for k in range(len(ids))]
@@ -501,7 +503,10 @@ class BatchedSystem:
         reused = [p for p in todo if p not in fresh]
         for ids in [reused[i : i + chunk] for i in range(0, len(reused), chunk)]:
             index = torch.as_tensor(ids, device=dev)
-            self._store_solution(increment, index, self._dense_substitute(ids, rhs))
+            x = self._dense_substitute(ids, rhs)
+            if coupling is not None:  # factors of the pattern alone, made by the banded solver
+                x = self._solve_coupled(ids, rhs, x, coupling)
+            self._store_solution(increment, index, x)
         if dev.type == "cuda":
             torch.cuda.synchronize(dev)
         return 1, worst
@@ -548,15 +553,18 @@ class BatchedSystem:
         float64 per problem: 11 MB for the 960-vertex box, against 66 MB dense). A problem whose matrix
         is not positive definite is factored by block LU (partial pivoting inside the blocks), and by
         dense LU with partial pivoting if a pivot block is singular (or flagged unsolved,
-        :attr:`report_indefinite`). ``refactor``, skipped problems and
-        kept factors and ``todo`` as in :meth:`solve_dense`. Returns (1, largest relative residual of the
-        freshly factored problems)."""
+        :attr:`report_indefinite`). With :attr:`coupling` (self-contact) the block-tridiagonal factors hold
+        the pattern alone and every solution is updated to the whole matrix (:meth:`_solve_coupled`); the
+        dense LU fallback factors the whole matrix. ``refactor``, skipped problems and kept factors and
+        ``todo`` as in :meth:`solve_dense`. Returns (1, largest relative residual of the freshly factored
+        problems)."""
         import torch
 
         layout = self.banded_layout()
         dev, values, rhs, increment, todo, fresh = self._torch_solve_start(refactor, todo)
         if not todo:
             return 1, 0.0
+        coupling = self._coupling_entries()  # None without self-contact
         worst = 0.0
         if fresh:
             if self._banded_scatter is None:
@@ -593,16 +601,14 @@ class BatchedSystem:
             batches = [indefinite] if dev.type == "cuda" else [[p] for p in indefinite]
             singular = [p for ids in batches if ids for p in factor(ids, lu=True)]
             if singular:
-                A = self._dense_matrices(values, torch.as_tensor(singular, device=dev))
+                A = self._whole_matrices(values, torch.as_tensor(singular, device=dev), coupling)
                 for k, p in enumerate(singular):
                     self._dense_factors[p] = ("lu", *torch.linalg.lu_factor(A[k]))
                 del A
-        coupling = None
         if todo:
             x = self._dense_substitute(todo, rhs)
-            if self.coupling is not None:
-                coupling = self._coupling_entries()
-                x = self._solve_coupled(todo, rhs, x, values, coupling)
+            if coupling is not None:
+                x = self._solve_coupled(todo, rhs, x, coupling)
             self._store_solution(increment, torch.as_tensor(todo, device=dev), x)
         if fresh and residual:
             worst = (
@@ -715,62 +721,63 @@ class BatchedSystem:
         y.scatter_add_(1, c, v * torch.gather(x, 1, r))
         return y
 
-    def _solve_coupled(self, ids: list[int], rhs, x, values, coupling):
-        """Solutions of the problems ``ids`` with their whole matrices (the pattern's blocks and the
-        couplings outside it), by conjugate gradients preconditioned with their stored factors of the
-        pattern alone, from ``x`` (those factors' solutions; (len(ids), n[, k]) as :meth:`_dense_substitute`).
+    def _solve_coupled(self, ids: list[int], rhs, x, coupling):
+        """Solutions of the problems ``ids`` with their whole matrices K = A + E: A the pattern's blocks
+        (the stored factors), E the couplings outside the pattern and their transposes (``coupling``, as
+        :meth:`_coupling_entries`), from ``x`` = A^-1 rhs (:meth:`_dense_substitute`'s shape).
 
-        The couplings (self-contact between vertices that are no mesh neighbours) have low rank: k pairs
-        change the matrix in at most 12 k directions, so CG ends in a few iterations where the factor is
-        fresh (exactly in at most 12 k + 1). Each problem stops at a relative residual of
-        :data:`COUPLED_RTOL` or after :data:`COUPLED_MAX_ITERATIONS` (then keeps its last iterate: the
-        Newton loop checks its own residual). On the CPU one problem at a time, so that a problem's answer
-        does not depend on its batch; on CUDA all at once."""
+        E is nonzero on the few unknowns of the self-contact pairs only: E = P E_s P^T with P their unit
+        columns (m of them, a few per pair) and E_s the m x m couplings. Then (Woodbury, with E_s singular
+        allowed) K^-1 b = x - Y E_s (I + G E_s)^-1 P^T x with Y = A^-1 P (one substitution of m columns) and
+        G = P^T Y: exact to round-off, for indefinite matrices too (LU-factored blocks). Only problems whose
+        stored factor is block-tridiagonal (the pattern alone) are updated: the dense factors (Cholesky, LU)
+        hold the couplings already; a problem without couplings keeps ``x``. On the CPU one problem at a
+        time (its answer must not depend on its batch), on CUDA all coupled ones at once (padded to the
+        largest m)."""
         import torch
 
         dev = x.device
         vector = x.dim() == 2
-        b_all = rhs[torch.as_tensor(ids, device=dev)]
-        if vector:
-            x, b_all = x.unsqueeze(2), b_all.unsqueeze(2)
-        groups = [list(range(len(ids)))] if dev.type == "cuda" else [[k] for k in range(len(ids))]
-        out = x.clone()
+        x = x.unsqueeze(2) if vector else x.clone()
+        rows, cols, entries = coupling
+        coupled = [
+            k
+            for k, p in enumerate(ids)
+            if self._dense_factors[p][0] == "banded" and bool((entries[p] != 0).any())
+        ]
+        groups = [coupled] if dev.type == "cuda" else [[k] for k in coupled]
         for group in groups:
+            if not group:
+                continue
+            problems = [ids[k] for k in group]
+            dofs, E_s = [], []
+            for p in problems:
+                nonzero = entries[p] != 0
+                r, c, v = rows[p][nonzero], cols[p][nonzero], entries[p][nonzero]
+                unknowns, local = torch.unique(torch.cat([r, c]), return_inverse=True)
+                m = len(unknowns)
+                block = torch.zeros(m, m, dtype=v.dtype, device=dev)
+                block.index_put_((local[: len(r)], local[len(r) :]), v, accumulate=True)
+                dofs.append(unknowns)
+                E_s.append(block + block.T)
+            width = max(len(d) for d in dofs)
+            n = x.shape[1]
+            index = torch.zeros(len(group), width, dtype=torch.long, device=dev)
+            units = torch.zeros(len(group), n, width, dtype=x.dtype, device=dev)
+            E = torch.zeros(len(group), width, width, dtype=x.dtype, device=dev)
+            for j, (d, e) in enumerate(zip(dofs, E_s)):
+                m = len(d)
+                index[j, :m] = d
+                units[j, d, torch.arange(m, device=dev)] = 1.0
+                E[j, :m, :m] = e
+            Y = self._substitute(problems, units)  # (g, n, width) = A^-1 P
+            G = torch.gather(Y, 1, index.unsqueeze(2).expand(-1, -1, width))  # P^T A^-1 P
+            I = torch.eye(width, dtype=x.dtype, device=dev).expand(len(group), -1, -1)
             k = torch.as_tensor(group, device=dev)
-            index = torch.as_tensor([ids[g] for g in group], device=dev)
-            for column in range(x.shape[2]):
-                out[k, :, column] = self._pcg(
-                    [ids[g] for g in group], index, values, coupling, b_all[k, :, column], x[k, :, column]
-                )
-        return out.squeeze(2) if vector else out
-
-    def _pcg(self, ids, index, values, coupling, b, x):
-        """Preconditioned CG (:meth:`_solve_coupled`) of (m, n) right-hand sides ``b`` from ``x``."""
-        import torch
-
-        tiny = torch.finfo(torch.float64).tiny
-        goal = COUPLED_RTOL * torch.linalg.vector_norm(b, dim=1)
-        r = b - self._coupled_product(values, index, coupling, x)
-        z = self._substitute(ids, r)
-        p = z.clone()
-        rz = (r * z).sum(dim=1)
-        for _ in range(COUPLED_MAX_ITERATIONS):
-            going = torch.linalg.vector_norm(r, dim=1) > goal
-            if not bool(going.any()):
-                break
-            q = self._coupled_product(values, index, coupling, p)
-            curvature = (p * q).sum(dim=1)
-            alpha = torch.where(going & (curvature > 0), rz / curvature.clamp_min(tiny), 0.0)
-            x = x + alpha[:, None] * p
-            r = r - alpha[:, None] * q
-            z = self._substitute(ids, r)
-            rz_next = (r * z).sum(dim=1)
-            beta = torch.where(going, rz_next / torch.where(rz != 0, rz, 1.0), 0.0)
-            p = z + beta[:, None] * p
-            rz = rz_next
-            if not bool((going & (curvature > 0)).any()):
-                break  # no direction of positive curvature left (not positive definite): keep x
-        return x
+            t = torch.gather(x[k], 1, index.unsqueeze(2).expand(-1, -1, x.shape[2]))  # P^T x
+            correction = torch.linalg.solve(I + torch.bmm(G, E), t)
+            x[k] = x[k] - torch.bmm(Y, torch.bmm(E, correction))
+        return x.squeeze(2) if vector else x
 
     def _coupled_residual(self, problems: list[int], rhs, increment, values, coupling) -> float:
         """max over ``problems`` of |K increment - rhs| / |rhs| with the whole matrices K."""
