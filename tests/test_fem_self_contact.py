@@ -353,6 +353,7 @@ def test_banded_solver_solves_with_the_couplings(linear_solver):
     the press reaches the direct solver's equilibrium (which factors the couplings in) in as many Newton
     iterations (without the couplings: 4400 for the first contact increment)."""
     from defgraspnets.fem import system
+    from defgraspnets.fem.profiling import time_linear_solves
 
     residuals = []
     update = system.BatchedSystem._solve_coupled
@@ -374,7 +375,7 @@ def test_banded_solver_solves_with_the_couplings(linear_solver):
     try:
         # dense_banded: banded from one problem to factor (else this one problem would go to dense)
         extra = {"banded_min_problems": 1} if linear_solver == "dense_banded" else {}
-        eq, _, _ = pressed_blocks(1.0, 2e-3, linear_solver=linear_solver, **extra)
+        eq, solver, _ = pressed_blocks(1.0, 2e-3, linear_solver=linear_solver, **extra)
     finally:
         system.BatchedSystem._solve_coupled = update
     direct, _, _ = pressed_blocks(1.0, 2e-3)
@@ -382,6 +383,13 @@ def test_banded_solver_solves_with_the_couplings(linear_solver):
     assert residuals and max(residuals) < 1e-9
     assert abs(int(eq.newton_iterations[0]) - int(direct.newton_iterations[0])) <= 2
     np.testing.assert_allclose(eq.displacement, direct.displacement, atol=1e-9)
+    # at the pressed state (pairs active): a random right-hand side solved with fresh factors by the dense
+    # solver (couplings factored in) and the banded one (updated) alike, each residual of the whole matrix
+    # at round-off
+    assert solver.self_contact_forces()[1].max() > 0
+    timed = time_linear_solves(solver, methods=("dense", "banded"), counts=(1,), repeats=1)
+    assert timed["max_relative_difference"] < 1e-10
+    assert max(timed["methods"][m][0]["residual"] for m in ("dense", "banded")) < 1e-12
 
 
 @pytest.mark.gpu
