@@ -738,13 +738,10 @@ class BatchedSystem:
 
         dev = x.device
         vector = x.dim() == 2
-        x = x.unsqueeze(2) if vector else x.clone()
+        x = (x.unsqueeze(2) if vector else x).clone()
         rows, cols, entries = coupling
-        coupled = [
-            k
-            for k, p in enumerate(ids)
-            if self._dense_factors[p][0] == "banded" and bool((entries[p] != 0).any())
-        ]
+        has_pairs = (entries != 0).any(dim=1).tolist()  # one device synchronization
+        coupled = [k for k, p in enumerate(ids) if has_pairs[p] and self._dense_factors[p][0] == "banded"]
         groups = [coupled] if dev.type == "cuda" else [[k] for k in coupled]
         for group in groups:
             if not group:
