@@ -358,14 +358,15 @@ def test_banded_solver_solves_with_the_couplings(linear_solver):
     residuals = []
     update = system.BatchedSystem._solve_coupled
 
-    def checked(self, ids, rhs, x, coupling):
-        out = update(self, ids, rhs, x, coupling)
+    def checked(self, ids, x, coupling):
+        out = update(self, ids, x, coupling)
         fresh = [k for k, p in enumerate(ids) if self.fresh_factor[p]]  # reused factors: chord steps
         if not fresh:
             return out
         index = torch.as_tensor([ids[k] for k in fresh])
-        b = rhs[index] if rhs.dim() == 2 else rhs[index, :, 0]
-        values = wp.to_torch(self.values)[: self.batch_size * self.pattern.nnz].reshape(self.batch_size, -1)
+        B = self.batch_size
+        b = wp.to_torch(self.rhs).reshape(B, -1)[index]  # the Newton step's right-hand side
+        values = wp.to_torch(self.values)[: B * self.pattern.nnz].reshape(B, -1)
         x = (out if out.dim() == 2 else out[..., 0])[fresh]
         product = self._coupled_product(values, index, coupling, x)
         residuals.append(float(((product - b).norm(dim=1) / b.norm(dim=1)).max()))

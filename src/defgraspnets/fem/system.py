@@ -505,7 +505,7 @@ class BatchedSystem:
             index = torch.as_tensor(ids, device=dev)
             x = self._dense_substitute(ids, rhs)
             if coupling is not None:  # factors of the pattern alone, made by the banded solver
-                x = self._solve_coupled(ids, rhs, x, coupling)
+                x = self._solve_coupled(ids, x, coupling)
             self._store_solution(increment, index, x)
         if dev.type == "cuda":
             torch.cuda.synchronize(dev)
@@ -608,7 +608,7 @@ class BatchedSystem:
         if todo:
             x = self._dense_substitute(todo, rhs)
             if coupling is not None:
-                x = self._solve_coupled(todo, rhs, x, coupling)
+                x = self._solve_coupled(todo, x, coupling)
             self._store_solution(increment, torch.as_tensor(todo, device=dev), x)
         if fresh and residual:
             worst = (
@@ -721,7 +721,7 @@ class BatchedSystem:
         y.scatter_add_(1, c, v * torch.gather(x, 1, r))
         return y
 
-    def _solve_coupled(self, ids: list[int], rhs, x, coupling):
+    def _solve_coupled(self, ids: list[int], x, coupling):
         """Solutions of the problems ``ids`` with their whole matrices K = A + E: A the pattern's blocks
         (the stored factors), E the couplings outside the pattern and their transposes (``coupling``, as
         :meth:`_coupling_entries`), from ``x`` = A^-1 rhs (:meth:`_dense_substitute`'s shape).
