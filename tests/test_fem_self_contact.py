@@ -393,6 +393,39 @@ def test_banded_solver_solves_with_the_couplings(linear_solver):
     assert max(timed["methods"][m][0]["residual"] for m in ("dense", "banded")) < 1e-12
 
 
+def test_low_rank_update_of_a_padded_batch_equals_each_problem_alone():
+    """The CUDA path's batch, run on the CPU: two problems whose pairs touch different numbers of unknowns
+    (the pressed blocks' pairs, and half of them) padded to the larger count; each problem's update equals
+    its update alone and solves its whole matrix (pattern and its own couplings)."""
+    _, solver, _ = pressed_blocks(1.0, 2e-3, linear_solver="banded")
+    sysm = solver.system
+    solver._assemble(solver._active_array(np.ones(1, dtype=bool)))  # the pressed state, pairs active
+    rng = np.random.default_rng(3)
+    sysm.rhs.assign(rng.normal(size=(sysm.pattern.rows_per_problem, 3)) * solver._free.numpy().reshape(-1, 3))
+    sysm.forget_factors()
+    sysm.solve_banded(residual=False)  # stores the banded factor of the pattern alone
+    rows, cols, entries = sysm._coupling_entries()
+    half = entries.clone()
+    nonzero = torch.nonzero(half[0]).flatten()
+    half[0, nonzero[len(nonzero) // 2 :]] = 0.0
+    R, C, V = rows.repeat(2, 1), cols.repeat(2, 1), torch.cat([entries, half])
+    counts = [len(torch.unique(torch.cat([R[j][V[j] != 0], C[j][V[j] != 0]]))) for j in range(2)]
+    assert counts[0] > counts[1] > 0  # the second problem is padded
+    b = wp.to_torch(sysm.rhs).reshape(1, -1)
+    x0 = sysm._dense_substitute([0], b).unsqueeze(2)
+    batched = sysm._low_rank_update([0, 0], x0.repeat(2, 1, 1), R, C, V)
+    values = wp.to_torch(sysm.values)[: sysm.pattern.nnz].reshape(1, -1)
+    for j in range(2):
+        alone = sysm._low_rank_update([0], x0, R[j : j + 1], C[j : j + 1], V[j : j + 1])
+        np.testing.assert_allclose(
+            batched[j].numpy(), alone[0].numpy(), rtol=0, atol=1e-12 * alone.abs().max()
+        )
+        own = (R[j : j + 1], C[j : j + 1], V[j : j + 1])
+        residual = sysm._coupled_product(values, torch.tensor([0]), own, batched[j, :, 0][None]) - b
+        assert float(residual.norm() / b.norm()) < 1e-12
+    assert float((batched[0] - batched[1]).abs().max()) > 1e-6 * float(batched.abs().max())  # other couplings
+
+
 @pytest.mark.gpu
 def test_cuda_banded_with_couplings_matches_cpu():
     """The banded solver's low-rank coupled update, batched on CUDA, gives the CPU's equilibrium."""

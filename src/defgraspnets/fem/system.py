@@ -744,37 +744,45 @@ class BatchedSystem:
         coupled = [k for k, p in enumerate(ids) if has_pairs[p] and self._dense_factors[p][0] == "banded"]
         groups = [coupled] if dev.type == "cuda" else [[k] for k in coupled]
         for group in groups:
-            if not group:
-                continue
-            problems = [ids[k] for k in group]
-            dofs, E_s = [], []
-            for p in problems:
-                nonzero = entries[p] != 0
-                r, c, v = rows[p][nonzero], cols[p][nonzero], entries[p][nonzero]
-                unknowns, local = torch.unique(torch.cat([r, c]), return_inverse=True)
-                m = len(unknowns)
-                block = torch.zeros(m, m, dtype=v.dtype, device=dev)
-                block.index_put_((local[: len(r)], local[len(r) :]), v, accumulate=True)
-                dofs.append(unknowns)
-                E_s.append(block + block.T)
-            width = max(len(d) for d in dofs)
-            n = x.shape[1]
-            index = torch.zeros(len(group), width, dtype=torch.long, device=dev)
-            units = torch.zeros(len(group), n, width, dtype=x.dtype, device=dev)
-            E = torch.zeros(len(group), width, width, dtype=x.dtype, device=dev)
-            for j, (d, e) in enumerate(zip(dofs, E_s)):
-                m = len(d)
-                index[j, :m] = d
-                units[j, d, torch.arange(m, device=dev)] = 1.0
-                E[j, :m, :m] = e
-            Y = self._substitute(problems, units)  # (g, n, width) = A^-1 P
-            G = torch.gather(Y, 1, index.unsqueeze(2).expand(-1, -1, width))  # P^T A^-1 P
-            I = torch.eye(width, dtype=x.dtype, device=dev).expand(len(group), -1, -1)
-            k = torch.as_tensor(group, device=dev)
-            t = torch.gather(x[k], 1, index.unsqueeze(2).expand(-1, -1, x.shape[2]))  # P^T x
-            correction = torch.linalg.solve(I + torch.bmm(G, E), t)
-            x[k] = x[k] - torch.bmm(Y, torch.bmm(E, correction))
+            if group:
+                problems = [ids[j] for j in group]
+                k, p = (torch.as_tensor(a, device=dev) for a in (group, problems))
+                x[k] = self._low_rank_update(problems, x[k], rows[p], cols[p], entries[p])
         return x.squeeze(2) if vector else x
+
+    def _low_rank_update(self, problems: list[int], x, rows, cols, entries):
+        """:meth:`_solve_coupled` of one batch: ``x`` (g, n, k) the stored (banded) factors' solutions of
+        ``problems``, ``rows``, ``cols``, ``entries`` (g, 9 C) their couplings' scalar entries; the unknowns
+        of the problems' pairs padded to the largest count (a padded unknown has a zero unit column and
+        zero couplings, so it changes nothing). Returns the whole matrices' solutions (g, n, k)."""
+        import torch
+
+        dev = x.device
+        dofs, E_s = [], []
+        for r, c, v in zip(rows, cols, entries):
+            nonzero = v != 0
+            r, c, v = r[nonzero], c[nonzero], v[nonzero]
+            unknowns, local = torch.unique(torch.cat([r, c]), return_inverse=True)
+            m = len(unknowns)
+            block = torch.zeros(m, m, dtype=v.dtype, device=dev)
+            block.index_put_((local[: len(r)], local[len(r) :]), v, accumulate=True)
+            dofs.append(unknowns)
+            E_s.append(block + block.T)
+        g, n, width = len(problems), x.shape[1], max(len(d) for d in dofs)
+        index = torch.zeros(g, width, dtype=torch.long, device=dev)
+        units = torch.zeros(g, n, width, dtype=x.dtype, device=dev)
+        E = torch.zeros(g, width, width, dtype=x.dtype, device=dev)
+        for j, (d, e) in enumerate(zip(dofs, E_s)):
+            m = len(d)
+            index[j, :m] = d
+            units[j, d, torch.arange(m, device=dev)] = 1.0
+            E[j, :m, :m] = e
+        Y = self._substitute(problems, units)  # (g, n, width) = A^-1 P
+        G = torch.gather(Y, 1, index.unsqueeze(2).expand(-1, -1, width))  # P^T A^-1 P
+        I = torch.eye(width, dtype=x.dtype, device=dev).expand(g, -1, -1)
+        t = torch.gather(x, 1, index.unsqueeze(2).expand(-1, -1, x.shape[2]))  # P^T x
+        correction = torch.linalg.solve(I + torch.bmm(G, E), t)
+        return x - torch.bmm(Y, torch.bmm(E, correction))
 
     def _coupled_residual(self, problems: list[int], rhs, increment, values, coupling) -> float:
         """max over ``problems`` of |K increment - rhs| / |rhs| with the whole matrices K."""
