@@ -466,7 +466,10 @@ def test_a_failed_release_is_relaxed_by_re_referenced_springs_and_converging_gra
 
     assert squeeze_solver_options().stabilization_relax == 40  # on the squeeze path since session 39
     plain = first_step(0)
-    assert plain.status.tolist() == [fem.SolveStatus.NOT_CONVERGED, fem.SolveStatus.CONVERGED]
+    # grasp 4 fails without the relax on the AMD EPYC it was measured on; the direct solver's round-off on
+    # an Intel Xeon (session 45) finds a frictional path that converges without it. Either way the relaxed
+    # solve must end in the exact equilibrium below and leave grasp 0 unchanged
+    assert plain.status[1] == fem.SolveStatus.CONVERGED
     eq = first_step(40)
     eq.require_converged()
     assert eq.newton_iterations[0] <= 200  # within the squeeze path's budget (measured 180)
@@ -595,8 +598,12 @@ def test_every_ramp_streamed_through_a_slot_gets_the_first_step_budget():
     grasps = sample_antipodal_grasps(mesh, num_grasps=100, friction_coefficient=0.7, seed=0)[[0, 96]]
     material = fem.Material(1e7, 0.3, 1000.0, model="neohookean")
     # (measured with the late friction-lag check, before session 44: the early one converges grasp 96's first
-    # step in 40 iterations, test_the_early_friction_lag_check_...)
-    options = squeeze_solver_options(linear_solver="direct", friction_lag_check=1)
+    # step in 40 iterations, test_the_early_friction_lag_check_...). The later steps' budget is 40 and the
+    # first step's 400, so the first step needs its own budget on every CPU (271 iterations on an AMD EPYC,
+    # 50 on an Intel Xeon: the direct solver's round-off picks the frictional path)
+    options = squeeze_solver_options(
+        linear_solver="direct", friction_lag_check=1, max_newton_per_solve=40, max_newton_first_step=400
+    )
     solver = make_squeeze_solver(mesh, grasps[[0]], material, 0.7, device="cpu", options=options)
     got = {}
 
@@ -606,7 +613,7 @@ def test_every_ramp_streamed_through_a_slot_gets_the_first_step_budget():
 
     squeeze_stream(solver, finger_contact_poses(grasps), [material] * 2, on_steps, max_force=0.3, steps=1)
     status, newton, displacement = got[1, 0]
-    assert status == fem.SolveStatus.CONVERGED and 200 < newton <= 400  # measured 271
+    assert status == fem.SolveStatus.CONVERGED and 40 < newton <= 400  # measured 271 (AMD), 50 (Intel)
     alone = make_squeeze_solver(mesh, grasps[[1]], material, 0.7, device="cpu", options=options)
     (eq,) = squeeze_ramp(alone, 0.3, 1)
     assert eq.newton_iterations[0] == newton
@@ -626,7 +633,9 @@ def test_the_early_friction_lag_check_settles_a_stiff_first_contact_in_fewer_new
     early = _cube_first_step([96, 0], 1e7, force, max_newton_first_step=0)
     late.require_converged()
     early.require_converged()
-    assert late.newton_iterations[0] > 200 and early.newton_iterations[0] <= 100  # measured 271 and 40
+    # measured 271 and 40 on an AMD EPYC; on an Intel Xeon (session 45) the late check's path is fast too
+    # (50): the direct solver's round-off picks the frictional path
+    assert early.newton_iterations[0] <= min(100, late.newton_iterations[0])
     np.testing.assert_allclose(early.dof_force["grip"], force, rtol=1e-4)
     left, right = (early.body_force[name] for name in FINGER_NAMES)
     np.testing.assert_allclose(left + right, 0.0, atol=1e-5)
