@@ -451,6 +451,52 @@ def test_dense_banded_solver_factors_few_problems_densely_and_many_banded():
     for bad in (0, 2.5, None):
         with pytest.raises(ValueError, match="banded_min_problems"):
             fem.SolverOptions(banded_min_problems=bad)
+    for bad in (0, 1.5, None, True):
+        with pytest.raises(ValueError, match="factor_streams"):
+            fem.SolverOptions(factor_streams=bad)
+
+
+def _dense_solutions_with_streams(device: str, factor_streams: int):
+    """solve_dense of four problems (one indefinite: LU) with ``factor_streams``: (solutions, numpy's,
+    factor kinds)."""
+    import warp as wp
+
+    from defgraspnets.fem.system import BatchedSystem, BlockPattern
+
+    mesh = fem.TetMesh.box(size=(L, L, L), divisions=(2, 2, 4))
+    pattern = BlockPattern.build(mesh, num_dofs=2)
+    B, n = 4, 3 * pattern.rows_per_problem
+    rng = np.random.default_rng(5)
+    dense, values = symmetric_pattern_matrices(pattern, B, [True, False, True, True], rng)
+    system = BatchedSystem(pattern, B, device)
+    system.factor_streams = factor_streams
+    system.values.assign(wp.array(values, dtype=wp.mat33d, device=device))
+    rhs = rng.normal(size=(B, n))
+    system.rhs.assign(wp.array(rhs.reshape(-1, 3), dtype=wp.vec3d, device=device))
+    system.solve_dense()
+    expected = np.stack([np.linalg.solve(dense[b], rhs[b]) for b in range(B)])
+    kinds = [system._dense_factors[b][0] for b in range(B)]
+    return system.increment.numpy().reshape(B, n), expected, kinds
+
+
+def test_dense_factor_streams_on_the_cpu_factor_one_after_another():
+    """factor_streams is a CUDA setting: on the CPU any value gives the one-stream answer, bit for bit."""
+    x1, expected, kinds = _dense_solutions_with_streams("cpu", 1)
+    x3, _, _ = _dense_solutions_with_streams("cpu", 3)
+    np.testing.assert_allclose(x1, expected, rtol=1e-8, atol=1e-12)
+    np.testing.assert_array_equal(x3, x1)
+    assert kinds == ["cholesky", "lu", "cholesky", "cholesky"]
+
+
+@pytest.mark.gpu
+def test_cuda_dense_factor_streams_match_one_stream():
+    """Three side streams factor four problems (one falls back to LU): numpy's solutions, and the same
+    as one stream to round-off."""
+    x1, expected, kinds1 = _dense_solutions_with_streams("cuda", 1)
+    x3, _, kinds3 = _dense_solutions_with_streams("cuda", 3)
+    np.testing.assert_allclose(x3, expected, rtol=1e-8, atol=1e-12)
+    np.testing.assert_allclose(x3, x1, rtol=1e-12, atol=1e-14)
+    assert kinds1 == kinds3 == ["cholesky", "lu", "cholesky", "cholesky"]
 
 
 def test_early_friction_lag_check_saves_relag_cycles_and_keeps_the_equilibrium():

@@ -135,6 +135,8 @@ class SolverOptions:
             (session 33, one H100, two pairs of runs in one lease: FEM benchmark 53.3 / 53.3 s against 57.9
             / 53.0 s with 12, streamed poke benchmark 80.2 / 79.7 s against 87.8 / 83.7 s; 8: 52.3 and
             88.9 s); 12 had been the fastest of 4-32 with triangular-solve substitutions (session 28).
+        factor_streams: CUDA streams on which the "dense" solver (and "dense_banded" below
+            ``banded_min_problems``) factors a few problems side by side; 1: one after another.
         cg_rtol, cg_max_iterations: tightest Krylov tolerance (relative to the right-hand side) and cap; the
             tolerance of each Newton step follows the Eisenstat-Walker forcing term (inexact Newton).
         max_step_fraction: largest vertex or travel motion per Newton iteration, as a fraction of the mesh
@@ -381,6 +383,7 @@ class SolverOptions:
     max_load_bisections: int = 10
     linear_solver: str = "auto"
     banded_min_problems: int = 4
+    factor_streams: int = 1
     cg_rtol: float = 1e-8
     cg_max_iterations: int = 5000
     max_step_fraction: float = 0.1
@@ -421,6 +424,9 @@ class SolverOptions:
                 f"SolverOptions.banded_min_problems must be an int >= 1, got {self.banded_min_problems!r}"
             )
         _check_optional_int("line_search_trials", self.line_search_trials, 1)
+        fs = self.factor_streams
+        if isinstance(fs, bool) or not (isinstance(fs, (int, np.integer)) and fs >= 1):
+            raise ValueError(f"SolverOptions.factor_streams must be an int >= 1, got {fs!r}")
         n = self.contact_subdivisions
         if isinstance(n, bool) or not (isinstance(n, (int, np.integer)) and n >= 1):
             raise ValueError(f"SolverOptions.contact_subdivisions must be an int >= 1, got {n!r}")
@@ -859,6 +865,7 @@ class QuasiStaticSolver:
             LINE_SEARCH_TRIALS_DEFAULT[dev.is_cuda] if trials is None else trials
         )
         self.system.keep_factors = self._reuse_factors
+        self.system.factor_streams = int(self.options.factor_streams)
         if self._reuse_factors and self.linear_solver in ("dense", "dense_banded") and dev.is_cuda:
             import torch
 

@@ -205,6 +205,11 @@ class BatchedSystem:
         #: banded solver factors the pattern alone and adds them by a low-rank update of its solutions
         #: (:meth:`_solve_coupled`); CG and AMG lack them
         self.coupling = None
+        #: CUDA streams on which :meth:`solve_dense` factors a few problems side by side (one cuSOLVER
+        #: Cholesky of a 2883-unknown matrix keeps only part of an H200 busy); 1: one after another on the
+        #: current stream. Set from SolverOptions.factor_streams
+        self.factor_streams = 1
+        self._side_streams: list = []  # torch.cuda.Stream objects, made on first use
 
     def zero(self):
         self.values.zero_()
@@ -466,9 +471,7 @@ class BatchedSystem:
             A = self._whole_matrices(values, index, coupling)
             if len(ids) <= DENSE_LOOP_MAX_PROBLEMS:
                 # a few problems: one factorization each (cuSOLVER's batched potrf has a large fixed cost)
-                factors = [torch.linalg.cholesky_ex(A[k]) for k in range(len(ids))]
-                L = [f[0] for f in factors]
-                info = [int(f[1]) for f in factors]
+                L, info = self._cholesky_each(A)
             else:
                 L, info = torch.linalg.cholesky_ex(A)
                 # kept factors are copied out of the batch, which would otherwise stay allocated as a whole
@@ -510,6 +513,38 @@ class BatchedSystem:
         if dev.type == "cuda":
             torch.cuda.synchronize(dev)
         return 1, worst
+
+    def _cholesky_each(self, A) -> tuple[list, list[int]]:
+        """Cholesky factorization of each matrix of ``A`` (m, n, n) on its own: (factors, LAPACK infos).
+
+        On CUDA with :attr:`factor_streams` > 1 the factorizations run on that many side streams, the
+        current stream waiting for them all (the side streams first wait for the current one, which built
+        ``A``); the infos come back in one device read."""
+        import torch
+
+        m = A.shape[0]
+        count = min(self.factor_streams, m) if A.device.type == "cuda" else 1
+        if count <= 1:
+            factors = [torch.linalg.cholesky_ex(A[k]) for k in range(m)]
+        else:
+            current = torch.cuda.current_stream(A.device)
+            while len(self._side_streams) < count:
+                self._side_streams.append(torch.cuda.Stream(device=A.device))
+            side = self._side_streams[:count]
+            factors = []
+            for s in side:
+                s.wait_stream(current)
+                A.record_stream(s)  # A's memory is not reused before the side streams are done with it
+            for k in range(m):
+                with torch.cuda.stream(side[k % count]):
+                    factors.append(torch.linalg.cholesky_ex(A[k]))
+                for t in factors[-1]:
+                    t.record_stream(current)  # used (and freed) on the current stream
+            for s in side:
+                current.wait_stream(s)
+        L = [f[0] for f in factors]
+        info = torch.stack([f[1] for f in factors]).tolist()
+        return L, info
 
     def solve_dense_banded(
         self, refactor: np.ndarray | None = None, banded_from: int = 4, residual: bool = True
