@@ -134,6 +134,9 @@ def test_shards_record_their_solver_settings_and_are_not_resumed_with_others(dat
     recorded = GraspShard(data_dir / shard_file_name("tinybox", 0, 1)).solver_settings
     assert recorded == json.loads(json.dumps(solver_settings(squeeze_solver_options())))
     assert recorded["squeeze"]["friction_lag_check"] == 1000 and "linear_solver" not in recorded["squeeze"]
+    defaults = solver_settings(squeeze_solver_options())
+    for solve_only in ({"factor_streams": 1}, {"banded_min_problems": 8}, {"linear_solver": "banded"}):
+        assert solver_settings(squeeze_solver_options(**solve_only)) == defaults  # resumable across them
     assert "experiments" not in recorded  # squeeze ramps only
 
     real_write = GraspShardWriter.write

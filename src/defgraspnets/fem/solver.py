@@ -136,7 +136,11 @@ class SolverOptions:
             / 53.0 s with 12, streamed poke benchmark 80.2 / 79.7 s against 87.8 / 83.7 s; 8: 52.3 and
             88.9 s); 12 had been the fastest of 4-32 with triangular-solve substitutions (session 28).
         factor_streams: CUDA streams on which the "dense" solver (and "dense_banded" below
-            ``banded_min_problems``) factors a few problems side by side; 1: one after another.
+            ``banded_min_problems``) factors a few problems side by side; 1: one after another (the CPU
+            always does). 3 (session 46, one H200): the FEM benchmark's three slowest grasps alone, 20
+            steps, 6.97 -> 5.91 s (GPU busy 5.9 -> 5.2 ms per Newton pass); the whole benchmark unchanged
+            within its run-to-run spread (median 32.2 s of 7 runs with 1, 32.4 s of 9 with 3;
+            ``benchmarks/fem_cuda_factor_streams_h200_s46.json``).
         cg_rtol, cg_max_iterations: tightest Krylov tolerance (relative to the right-hand side) and cap; the
             tolerance of each Newton step follows the Eisenstat-Walker forcing term (inexact Newton).
         max_step_fraction: largest vertex or travel motion per Newton iteration, as a fraction of the mesh
@@ -383,7 +387,7 @@ class SolverOptions:
     max_load_bisections: int = 10
     linear_solver: str = "auto"
     banded_min_problems: int = 4
-    factor_streams: int = 1
+    factor_streams: int = 3
     cg_rtol: float = 1e-8
     cg_max_iterations: int = 5000
     max_step_fraction: float = 0.1

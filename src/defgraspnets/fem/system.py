@@ -207,7 +207,7 @@ class BatchedSystem:
         self.coupling = None
         #: CUDA streams on which :meth:`solve_dense` factors a few problems side by side (one cuSOLVER
         #: Cholesky of a 2883-unknown matrix keeps only part of an H200 busy); 1: one after another on the
-        #: current stream. Set from SolverOptions.factor_streams
+        #: current stream (the default here; the solver sets SolverOptions.factor_streams)
         self.factor_streams = 1
         self._side_streams: list = []  # torch.cuda.Stream objects, made on first use
 
