@@ -2992,7 +2992,9 @@ class QuasiStaticSolver:
             # rejects it) and the Levenberg-Marquardt damping below, instead of an LU step
             sysm.report_indefinite = working & (run.exact == 1)
         try:
-            n_lin, _ = self._linear_solve(linear_rtol, refactor)
+            # the right-hand side is not zero exactly for the working problems (their residual is above
+            # a positive tolerance; the others' rows were zeroed above)
+            n_lin, _ = self._linear_solve(linear_rtol, refactor, problems=working)
         finally:
             sysm.extra_rhs = None
             sysm.report_indefinite = None
@@ -3052,22 +3054,27 @@ class QuasiStaticSolver:
         run.status[esc] = SolveStatus.ESCAPED
         working &= ~esc
 
-    def _linear_solve(self, rtol: float, refactor: np.ndarray | None = None) -> tuple[int, float]:
+    def _linear_solve(
+        self, rtol: float, refactor: np.ndarray | None = None, problems: np.ndarray | None = None
+    ) -> tuple[int, float]:
         """H increment = rhs with the configured linear solver; returns (iterations, residual; nan where a
         factorizing solver was spared computing it: the Newton loop checks its own residual and step).
         ``refactor``: problems whose stored factorization is out of date (direct and dense solvers; None:
-        none, a second right-hand side of the same matrices)."""
+        none, a second right-hand side of the same matrices). ``problems`` (B,) bool: exactly those whose
+        right-hand side is not zero, where the caller knows them (the PyTorch solvers then need not read
+        the right-hand sides from the device); None: found from the right-hand sides."""
         o, sysm = self.options, self.system
+        todo = None if problems is None else np.flatnonzero(problems).tolist()
         if self.linear_solver == "cg":
             return sysm.solve_cg(rtol, o.cg_max_iterations)
         if self.linear_solver == "amg":
             return sysm.solve_amg(self._near_nullspace, rtol, o.cg_max_iterations)
         if self.linear_solver == "dense":
-            return sysm.solve_dense(refactor, residual=False)
+            return sysm.solve_dense(refactor, residual=False, todo=todo)
         if self.linear_solver == "banded":
-            return sysm.solve_banded(refactor, residual=False)
+            return sysm.solve_banded(refactor, todo=todo, residual=False)
         if self.linear_solver == "dense_banded":
-            return sysm.solve_dense_banded(refactor, o.banded_min_problems, residual=False)
+            return sysm.solve_dense_banded(refactor, o.banded_min_problems, residual=False, todo=todo)
         return sysm.solve_direct(refactor)
 
     def _line_search(self, working: np.ndarray, max_step: float):

@@ -210,6 +210,34 @@ class BatchedSystem:
         #: current stream (the default here; the solver sets SolverOptions.factor_streams)
         self.factor_streams = 1
         self._side_streams: list = []  # torch.cuda.Stream objects, made on first use
+        self._stream_views: dict = {}  # Warp's stream as a torch stream and torch's as a Warp one (CUDA)
+
+    def _torch_after_warp(self) -> None:
+        """PyTorch's current stream waits, on the device (the host does not block), for the work queued on
+        Warp's stream so far: the PyTorch solvers then read the assembled matrix and right-hand side."""
+        if not self.device.is_cuda:
+            return
+        import torch
+
+        dev = torch.device(wp.device_to_torch(self.device))
+        warp_stream = self.device.stream
+        key = ("torch", id(warp_stream))
+        if key not in self._stream_views:
+            self._stream_views[key] = wp.stream_to_torch(warp_stream)
+        torch.cuda.current_stream(dev).wait_stream(self._stream_views[key])
+
+    def _warp_after_torch(self) -> None:
+        """Warp's stream waits, on the device, for the work queued on PyTorch's current stream so far: Warp's
+        next kernels (the line search) read the increment the PyTorch solvers wrote."""
+        if not self.device.is_cuda:
+            return
+        import torch
+
+        current = torch.cuda.current_stream(torch.device(wp.device_to_torch(self.device)))
+        key = ("warp", current.cuda_stream)
+        if key not in self._stream_views:
+            self._stream_views[key] = wp.stream_from_torch(current)
+        self.device.stream.wait_stream(self._stream_views[key])
 
     def zero(self):
         self.values.zero_()
@@ -374,6 +402,8 @@ class BatchedSystem:
         dev = torch.device(wp.device_to_torch(self.device))
         if todo is None:
             todo = self._problems_with_rhs()
+        else:
+            self._torch_after_warp()
         values = wp.to_torch(self.values)[: B * nnz].reshape(B, nnz * 9)
         rhs = wp.to_torch(self.rhs).reshape(B, n)
         increment = wp.to_torch(self.increment).reshape(B, n)
@@ -400,7 +430,7 @@ class BatchedSystem:
         assembly has finished."""
         import torch
 
-        wp.synchronize_device(self.device)
+        self._torch_after_warp()
         rhs = wp.to_torch(self.rhs).reshape(self.batch_size, 3 * self.pattern.rows_per_problem)
         return torch.nonzero(rhs.abs().amax(dim=1) > 0).flatten().tolist()
 
@@ -448,9 +478,12 @@ class BatchedSystem:
         or, with ``keep_factors``, until :meth:`forget_factors` (one (3R)^2 float64 factor per problem
         stays allocated). ``refactor`` as in :meth:`solve_direct`: a problem not marked solves with its
         stored factor by two triangular solves. ``todo``: the problems with a nonzero right-hand side where
-        the caller has found them already (:meth:`solve_dense_banded`). Returns (1, largest relative residual
-        of the freshly factored chunks); ``residual=False``: (1, nan), without computing it (a batched
-        product and a device synchronization per chunk: the Newton loop checks its own residual)."""
+        the caller knows them already (:meth:`solve_dense_banded`, the Newton loop's working problems: then
+        they are not read from the device). On CUDA the solve is ordered after Warp's queued work and
+        Warp's next kernels after it by stream waits on the device, not by host synchronizations.
+        Returns (1, largest relative residual of the freshly factored chunks); ``residual=False``: (1, nan),
+        without computing it (a batched product and a device synchronization per chunk: the Newton loop
+        checks its own residual)."""
         import torch
 
         n = 3 * self.pattern.rows_per_problem
@@ -510,8 +543,7 @@ class BatchedSystem:
             if coupling is not None:  # factors of the pattern alone, made by the banded solver
                 x = self._solve_coupled(ids, x, coupling)
             self._store_solution(increment, index, x)
-        if dev.type == "cuda":
-            torch.cuda.synchronize(dev)
+        self._warp_after_torch()
         return 1, worst
 
     def _cholesky_each(self, A) -> tuple[list, list[int]]:
@@ -547,7 +579,11 @@ class BatchedSystem:
         return L, info
 
     def solve_dense_banded(
-        self, refactor: np.ndarray | None = None, banded_from: int = 4, residual: bool = True
+        self,
+        refactor: np.ndarray | None = None,
+        banded_from: int = 4,
+        residual: bool = True,
+        todo: list[int] | None = None,
     ) -> tuple[int, float]:
         """:meth:`solve_dense` when fewer than ``banded_from`` problems need a new factorization,
         :meth:`solve_banded` otherwise (both exact; their factors are stored side by side and substituted
@@ -559,11 +595,12 @@ class BatchedSystem:
         triangular-solve substitutions; since they are batched products 4 is the fastest of 4 / 8 / 12:
         ``SolverOptions.banded_min_problems``, the solver's default, says by how much). Which solver
         factors a problem depends on how many others factor with it, so its answer may differ in round-off
-        with the batch (as the batched banded solver's already may). ``residual`` as in
+        with the batch (as the batched banded solver's already may). ``residual`` and ``todo`` as in
         :meth:`solve_dense`."""
         if banded_from < 1:
             raise ValueError(f"banded_from must be >= 1, got {banded_from}")
-        todo = self._problems_with_rhs()
+        if todo is None:
+            todo = self._problems_with_rhs()
         count = sum(1 for p in todo if p not in self._dense_factors or (refactor is not None and refactor[p]))
         solve = self.solve_banded if count >= banded_from else self.solve_dense
         return solve(refactor, todo=todo, residual=residual)
@@ -653,8 +690,7 @@ class BatchedSystem:
             )
         elif fresh:
             worst = float("nan")
-        if dev.type == "cuda":
-            torch.cuda.synchronize(dev)
+        self._warp_after_torch()
         return 1, worst
 
     def _reported(self, ids: list[int], info=None) -> set[int]:
