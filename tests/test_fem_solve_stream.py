@@ -39,11 +39,13 @@ def _assert_same(a: fem.Equilibrium, b: fem.Equilibrium) -> None:
     assert_same_squeeze(a, b)
 
 
-def _stream(batch_size: int, lengths, check=None, materials=None, **options):
+def _stream(batch_size: int, lengths, check=None, materials=None, template=None, **options):
     """Jobs j = 0..4 (job j: grasp j's levels, ``lengths[j]`` of them) through a ``batch_size`` batch whose
     problems start each job from the gripped template problem j (``materials``: the template's, one per
-    job). Returns {(job, level): equilibrium}, the order of the reports and the (problem, job) starts."""
-    template = _solver(materials=materials, **options)
+    job; ``template``: one made already, not changed here). Returns {(job, level): equilibrium}, the order
+    of the reports and the (problem, job) starts."""
+    if template is None:
+        template = _solver(materials=materials, **options)
     solver = _solver(OFFSETS[:batch_size], **options)
     got, order, starts = {}, [], []
 
