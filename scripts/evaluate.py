@@ -3,11 +3,14 @@
     python scripts/evaluate.py ckpt_path=logs/defgraspnets/runs/<time>/checkpoints/last.ckpt
     python scripts/evaluate.py 'ckpt_paths=[a.ckpt,b.ckpt]' data.data_dir=/data/grasps device=cuda
     python scripts/evaluate.py ckpt_path=a.ckpt data.data_dir=/data/fresh_grasps part=all  # every squeeze
+    python scripts/evaluate.py 'ckpt_paths=[base.ckpt,v1.ckpt,v2.ckpt,v3.ckpt,v4.ckpt]' ablations=true
 
 For each checkpoint the test split it was trained with is rebuilt from the datamodule hyperparameters stored
 in the checkpoint. Outputs in Hydra's run directory: ``results.md`` and ``results.json`` (rows: tau_s, tau_d,
 stress MAE [kPa], deformation MAE [mm] per level; per test object with its Chamfer distance d_C [mm] to the
-nearest training object) and ``fields_<level>_<i>_{stress,deformation}.png`` (predicted vs FEM fields).
+nearest training object; with ``ablations=true`` the Table 7.2 analogue of checkpoints that differ in one
+design condition, :mod:`defgraspnets.eval.ablation`) and ``fields_<level>_<i>_{stress,deformation}.png``
+(predicted vs FEM fields).
 ``part=all`` evaluates every solved squeeze of ``data.data_dir`` whatever the split (data the checkpoint never
 saw, e.g. new grasps drawn with another datagen seed); its object rows name no nearest training object.
 """
@@ -66,6 +69,7 @@ def evaluate_checkpoint(ckpt_path: str, cfg: DictConfig, out_dir: Path) -> tuple
     from torch_geometric.loader import DataLoader
     from tqdm.auto import tqdm
 
+    from defgraspnets.eval.ablation import model_conditions
     from defgraspnets.eval.chamfer import chamfer_distance, surface_samples
     from defgraspnets.eval.metrics import FieldMetrics
     from defgraspnets.eval.report import plot_fields
@@ -98,6 +102,7 @@ def evaluate_checkpoint(ckpt_path: str, cfg: DictConfig, out_dir: Path) -> tuple
         "displacement_target": module.displacement_target,
         "checkpoint": str(ckpt_path),
         "min_relative_spread": cfg.min_relative_spread,
+        "conditions": model_conditions(module.hparams),  # the design variables of Table 7.2
         **metrics.compute(),
     }
 
@@ -154,6 +159,7 @@ def evaluate_checkpoint(ckpt_path: str, cfg: DictConfig, out_dir: Path) -> tuple
 
 @hydra.main(version_base="1.3", config_path="../configs", config_name="evaluate.yaml")
 def main(cfg: DictConfig) -> None:
+    from defgraspnets.eval.ablation import ABLATION_COLUMNS, ablation_rows
     from defgraspnets.eval.report import LEVEL_COLUMNS, OBJECT_COLUMNS, markdown_table, write_json
 
     ckpts = list(cfg.ckpt_paths or []) + ([cfg.ckpt_path] if cfg.ckpt_path else [])
@@ -163,24 +169,32 @@ def main(cfg: DictConfig) -> None:
         raise ValueError(f"part={cfg.part!r}: choose one of {', '.join(PARTS)}")
     out_dir = Path(cfg.output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    if not isinstance(cfg.ablations, bool):
+        raise ValueError(f"ablations={cfg.ablations!r}: true or false")
+    if cfg.ablations and len(ckpts) < 2:
+        raise ValueError("ablations=true compares several checkpoints: give ckpt_paths=[baseline,V1,...]")
     levels, objects = [], []
     for ckpt in ckpts:
         level, rows = evaluate_checkpoint(ckpt, cfg, out_dir)
         levels.append(level)
         objects += rows
-    text = (
-        "\n\n".join(
-            [
-                "## DefGraspNets generalization (thesis §7.6)",
-                markdown_table(levels, LEVEL_COLUMNS),
-                "## Per test object (thesis Table 7.1): d_C = Chamfer distance to the nearest train object",
-                markdown_table(objects, (("split", "Level", "{}"), *OBJECT_COLUMNS)),
-            ]
-        )
-        + "\n"
-    )
+    sections = [
+        "## DefGraspNets generalization (thesis §7.6)",
+        markdown_table(levels, LEVEL_COLUMNS),
+        "## Per test object (thesis Table 7.1): d_C = Chamfer distance to the nearest train object",
+        markdown_table(objects, (("split", "Level", "{}"), *OBJECT_COLUMNS)),
+    ]
+    results = {"levels": levels, "objects": objects}
+    if cfg.ablations:
+        results["ablations"] = ablation_rows(levels)
+        sections += [
+            "## Ablations (thesis §7.8, Table 7.2): each variant differs from the baseline in the named "
+            "condition; thesis values from its own data and test set",
+            markdown_table(results["ablations"], ABLATION_COLUMNS),
+        ]
+    text = "\n\n".join(sections) + "\n"
     (out_dir / "results.md").write_text(text)
-    write_json(out_dir / "results.json", {"levels": levels, "objects": objects})
+    write_json(out_dir / "results.json", results)
     print(text)
     log.info("results written to %s", out_dir)
 

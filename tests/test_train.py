@@ -155,6 +155,36 @@ def test_evaluate_script(first_run, data_root):
     assert (out / "fields_unseen_grasps_0_stress.png").stat().st_size > 10_000
 
 
+def test_evaluate_script_writes_the_ablation_table(first_run, data_root):
+    """ablations=true on the baseline and a V3 model (F_g on every contact edge) trained on the same split:
+    the Table 7.2 rows name the variant and carry the thesis's values; one checkpoint alone is refused."""
+    v3 = data_root / "run_v3"
+    r = _run(
+        "train.py",
+        "experiment=defgraspnets_v3_total_force",
+        f"paths.data_dir={data_root}",
+        f"hydra.run.dir={v3}",
+        "trainer.max_epochs=1",
+        "logger=csv",
+        *TINY,
+        cwd=data_root,
+    )
+    assert r.returncode == 0, r.stderr[-4000:]
+    out = data_root / "eval_ablations"
+    ckpts = f"ckpt_paths=[{first_run}/checkpoints/last.ckpt,{v3}/checkpoints/last.ckpt]"
+    r = _evaluate(first_run, out, ckpts, "ablations=true", "plots=0", "chamfer_samples=64", "ckpt_path=null")
+    assert r.returncode == 0, r.stderr[-4000:]
+    result = json.loads((out / "results.json").read_text())
+    base, v3_row = result["ablations"]
+    assert base["variant"] == "baseline" and v3_row["variant"] == "V3 force on a contact edge"
+    assert v3_row["condition"] == "non-distributed F_g" and v3_row["thesis_tau_d"] == 0.33
+    assert [lv["conditions"]["force_feature"] for lv in result["levels"]] == ["distributed", "total"]
+    assert base["samples"] == v3_row["samples"] > 0  # one test set
+    assert "## Ablations (thesis §7.8, Table 7.2)" in (out / "results.md").read_text()
+    alone = _evaluate(first_run, data_root / "eval_ablations_alone", "ablations=true", "plots=0")
+    assert alone.returncode != 0 and "ablations=true compares several checkpoints" in alone.stderr
+
+
 def test_evaluate_script_on_the_training_part(first_run, data_root):
     """part=train evaluates the training grasps at the test part's steps and says so."""
     runs = {}
