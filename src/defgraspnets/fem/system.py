@@ -489,6 +489,7 @@ class BatchedSystem:
         n = 3 * self.pattern.rows_per_problem
         dev, values, rhs, increment, todo, fresh = self._torch_solve_start(refactor, todo)
         if not todo:
+            self._warp_after_torch()  # the zeroed increment
             return 1, 0.0
         bytes_per_problem = 3 * n * n * 8  # matrix, factor, workspace
         if dev.type == "cuda":
@@ -635,6 +636,7 @@ class BatchedSystem:
         layout = self.banded_layout()
         dev, values, rhs, increment, todo, fresh = self._torch_solve_start(refactor, todo)
         if not todo:
+            self._warp_after_torch()  # the zeroed increment
             return 1, 0.0
         coupling = self._coupling_entries()  # None without self-contact
         worst = 0.0
