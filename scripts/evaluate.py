@@ -10,7 +10,7 @@ in the checkpoint. Outputs in Hydra's run directory: ``results.md`` and ``result
 stress MAE [kPa], deformation MAE [mm] per level; per test object with its Chamfer distance d_C [mm] to the
 nearest training object; with ``ablations=true`` the Table 7.2 analogue of checkpoints that differ in one
 design condition, :mod:`defgraspnets.eval.ablation`) and ``fields_<level>_<i>_{stress,deformation}.png``
-(predicted vs FEM fields).
+(predicted vs FEM fields; ``fields_<model>_<level>_...`` for several checkpoints, model = run directory).
 ``part=all`` evaluates every solved squeeze of ``data.data_dir`` whatever the split (data the checkpoint never
 saw, e.g. new grasps drawn with another datagen seed); its object rows name no nearest training object.
 """
@@ -61,8 +61,19 @@ def load(ckpt_path: str, cfg: DictConfig, device):
     return module, GraspDataModule(**dm_hparams), level_name
 
 
-def evaluate_checkpoint(ckpt_path: str, cfg: DictConfig, out_dir: Path) -> tuple[dict, list[dict]]:
-    """Run the test split; return the level row and the per-object rows."""
+def model_label(ckpt_path: str) -> str:
+    """A short name of a checkpoint for the tables: its run directory (``<run>/checkpoints/last.ckpt``) or
+    else its file name without the suffix."""
+    path = Path(ckpt_path)
+    return path.parent.parent.name if path.parent.name == "checkpoints" else path.stem
+
+
+def evaluate_checkpoint(
+    ckpt_path: str, cfg: DictConfig, out_dir: Path, plots_by_model: bool = False
+) -> tuple[dict, list[dict]]:
+    """Run the test split; return the level row and the per-object rows. ``plots_by_model``: the plots'
+    file names start with the model's label (several checkpoints of one split would overwrite each
+    other's)."""
     import numpy as np
     import torch
     from torch.utils.data import Subset
@@ -96,8 +107,11 @@ def evaluate_checkpoint(ckpt_path: str, cfg: DictConfig, out_dir: Path) -> tuple
     # a part other than the test part is named in every row and file ("unseen_grasps/train")
     split = level_name if cfg.part == "test" else f"{level_name}/{cfg.part}"
     stem = split.replace("/", "_")
+    if plots_by_model:
+        stem = f"{model_label(ckpt_path)}_{stem}"
     # which field "deformation" is: the total displacement or the one without the object's rigid motion
     level = {
+        "model": model_label(ckpt_path),
         "split": split,
         "displacement_target": module.displacement_target,
         "checkpoint": str(ckpt_path),
@@ -118,6 +132,7 @@ def evaluate_checkpoint(ckpt_path: str, cfg: DictConfig, out_dir: Path) -> tuple
         nearest = min(dist, key=dist.get) if dist else None
         rows.append(
             {
+                "model": level["model"],
                 "split": split,
                 "object": name,
                 "nearest_train_object": nearest,
@@ -175,14 +190,16 @@ def main(cfg: DictConfig) -> None:
         raise ValueError("ablations=true compares several checkpoints: give ckpt_paths=[baseline,V1,...]")
     levels, objects = [], []
     for ckpt in ckpts:
-        level, rows = evaluate_checkpoint(ckpt, cfg, out_dir)
+        level, rows = evaluate_checkpoint(ckpt, cfg, out_dir, plots_by_model=len(ckpts) > 1)
         levels.append(level)
         objects += rows
+    # several checkpoints: each row names its model (run directory or file name)
+    named = (("model", "Model", "{}"),) if len(ckpts) > 1 else ()
     sections = [
         "## DefGraspNets generalization (thesis §7.6)",
-        markdown_table(levels, LEVEL_COLUMNS),
+        markdown_table(levels, (*named, *LEVEL_COLUMNS)),
         "## Per test object (thesis Table 7.1): d_C = Chamfer distance to the nearest train object",
-        markdown_table(objects, (("split", "Level", "{}"), *OBJECT_COLUMNS)),
+        markdown_table(objects, (*named, ("split", "Level", "{}"), *OBJECT_COLUMNS)),
     ]
     results = {"levels": levels, "objects": objects}
     if cfg.ablations:

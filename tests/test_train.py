@@ -172,7 +172,7 @@ def test_evaluate_script_writes_the_ablation_table(first_run, data_root):
     assert r.returncode == 0, r.stderr[-4000:]
     out = data_root / "eval_ablations"
     ckpts = f"ckpt_paths=[{first_run}/checkpoints/last.ckpt,{v3}/checkpoints/last.ckpt]"
-    r = _evaluate(first_run, out, ckpts, "ablations=true", "plots=0", "chamfer_samples=64", "ckpt_path=null")
+    r = _evaluate(first_run, out, ckpts, "ablations=true", "plots=1", "chamfer_samples=64", "ckpt_path=null")
     assert r.returncode == 0, r.stderr[-4000:]
     result = json.loads((out / "results.json").read_text())
     base, v3_row = result["ablations"]
@@ -180,7 +180,11 @@ def test_evaluate_script_writes_the_ablation_table(first_run, data_root):
     assert v3_row["condition"] == "non-distributed F_g" and v3_row["thesis_tau_d"] == 0.33
     assert [lv["conditions"]["force_feature"] for lv in result["levels"]] == ["distributed", "total"]
     assert base["samples"] == v3_row["samples"] > 0  # one test set
-    assert "## Ablations (thesis §7.8, Table 7.2)" in (out / "results.md").read_text()
+    assert (base["model"], v3_row["model"]) == ("run1", "run_v3")  # the run directories
+    text = (out / "results.md").read_text()
+    assert "## Ablations (thesis §7.8, Table 7.2)" in text and "| run_v3 | unseen_grasps |" in text
+    for model in ("run1", "run_v3"):  # one plot each, not one overwriting the other
+        assert (out / f"fields_{model}_unseen_grasps_0_stress.png").exists()
     alone = _evaluate(first_run, data_root / "eval_ablations_alone", "ablations=true", "plots=0")
     assert alone.returncode != 0 and "ablations=true compares several checkpoints" in alone.stderr
 

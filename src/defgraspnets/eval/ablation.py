@@ -61,6 +61,7 @@ THESIS_TABLE_7_2 = {
 
 ABLATION_COLUMNS = (
     ("variant", "Variant", "{}"),
+    ("model", "Model", "{}"),
     ("condition", "Condition", "{}"),
     ("displacement_target", "Displacement", "{}"),
     ("samples", "Test samples", "{:d}"),

@@ -1,0 +1,41 @@
+#!/usr/bin/env bash
+# Thesis §7.8 (Table 7.2): train the baseline DefGraspNets and its four ablations V1-V4 on one split of one
+# data set, then evaluate them together (scripts/evaluate.py ablations=true).
+#
+#   DATA=data/grasps OUT=logs/ablations bash scripts/train_ablations.sh [train.py overrides ...]
+#   PARALLEL=2 DATA=... bash scripts/train_ablations.sh trainer=cpu model.latent=32 trainer.max_time=00:00:08:00
+#
+# Env: DATA (shard directory, required), OUT (runs and evaluation; default logs/ablations/<time>), PARALLEL
+# (trainings at once; default 1), STRIDE (V2's data.ramp_stride: ramp steps / model.num_steps; default 2, for
+# 10-step ramps and the default 5 rollout steps), EVAL (extra scripts/evaluate.py overrides).
+# The overrides go to every training (the same split, steps, size and budget for all five models).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+: "${DATA:?set DATA to the shard directory}"
+OUT=${OUT:-logs/ablations/$(date +%Y-%m-%d_%H-%M-%S)}
+PARALLEL=${PARALLEL:-1}
+STRIDE=${STRIDE:-2}
+mkdir -p "$OUT"
+declare -A EXTRA=([baseline]="" [v1_separate]="" [v2_multi_step]="data.ramp_stride=$STRIDE" [v3_total_force]="" [v4_node_force]="")
+train() {
+  local name=$1; shift
+  local experiment=defgraspnets${name#baseline}; experiment=${experiment/defgraspnetsv/defgraspnets_v}
+  # shellcheck disable=SC2086
+  python train.py experiment="$experiment" data.data_dir="$DATA" hydra.run.dir="$OUT/$name" logger=csv \
+    ${EXTRA[$name]} "$@" > "$OUT/$name.log" 2>&1 && touch "$OUT/$name.trained" && echo "trained $name" \
+    || echo "FAILED $name (see $OUT/$name.log)"
+}
+NAMES=(baseline v1_separate v2_multi_step v3_total_force v4_node_force)
+for name in "${NAMES[@]}"; do
+  rm -f "$OUT/$name.trained"
+  train "$name" "$@" &
+  while (( $(jobs -rp | wc -l) >= PARALLEL )); do wait -n || true; done
+done
+wait
+for name in "${NAMES[@]}"; do
+  [ -f "$OUT/$name.trained" ] || { echo "$name did not train (see $OUT/$name.log): no ablation table"; exit 1; }
+done
+ckpts=$(printf '%s,' "$OUT"/{baseline,v1_separate,v2_multi_step,v3_total_force,v4_node_force}/checkpoints/last.ckpt)
+# shellcheck disable=SC2086
+python scripts/evaluate.py "ckpt_paths=[${ckpts%,}]" ablations=true hydra.run.dir="$OUT/evaluation" ${EVAL:-}
+echo "ablation table: $OUT/evaluation/results.md"
