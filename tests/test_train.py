@@ -189,6 +189,30 @@ def test_evaluate_script_writes_the_ablation_table(first_run, data_root):
     assert alone.returncode != 0 and "ablations=true compares several checkpoints" in alone.stderr
 
 
+def test_train_ablations_script_trains_five_models_and_writes_their_table(data_root):
+    """scripts/train_ablations.sh: the baseline and V1-V4 with the same overrides, two at a time, each told
+    its GPU (GPUS=2: models 0-4 on GPUs 0 1 0 1 0; the CPU trainer ignores it), then one ablation table; a
+    failing override stops it before the table, naming the model."""
+    names = ["baseline", "v1_separate", "v2_multi_step", "v3_total_force", "v4_node_force"]
+    out = data_root / "ablations"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "WANDB_MODE": "offline", "PYTHONWARNINGS": "ignore"}
+    env.update(DATA=str(data_root / "grasps"), OUT=str(out), PARALLEL="2", GPUS="2", STRIDE="1")
+    env["EVAL"] = "plots=0 chamfer_samples=64 extras.print_config=false"
+    script = ["bash", str(ROOT / "scripts" / "train_ablations.sh")]
+    args = [*script, "trainer=cpu", "trainer.max_epochs=1", *TINY]
+    r = subprocess.run(args, env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    gpus = dict(line.split(" on GPU ") for line in r.stdout.splitlines() if " on GPU " in line)
+    assert gpus == dict(zip(names, "01010"))
+    rows = json.loads((out / "evaluation" / "results.json").read_text())["ablations"]
+    assert [row["model"] for row in rows] == names
+    variables = [[], ["outputs"], ["prediction"], ["force_feature"], ["force_on"]]
+    assert [row["differs_in"] for row in rows] == variables
+    env["OUT"] = str(data_root / "ablations_bad")
+    bad = subprocess.run([*args, "model.latent=-1"], env=env, capture_output=True, text=True, timeout=600)
+    assert bad.returncode != 0 and "baseline did not train" in bad.stdout
+
+
 def test_evaluate_script_on_the_training_part(first_run, data_root):
     """part=train evaluates the training grasps at the test part's steps and says so."""
     runs = {}
