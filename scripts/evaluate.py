@@ -106,12 +106,12 @@ def evaluate_checkpoint(
             metrics.update(stress, disp, batch)
     # a part other than the test part is named in every row and file ("unseen_grasps/train")
     split = level_name if cfg.part == "test" else f"{level_name}/{cfg.part}"
-    stem = split.replace("/", "_")
-    if plots_by_model:
-        stem = f"{model_label(ckpt_path)}_{stem}"
+    model = model_label(ckpt_path)
+    stem = f"{model}_{split}" if plots_by_model else split
+    stem = stem.replace("/", "_")
     # which field "deformation" is: the total displacement or the one without the object's rigid motion
     level = {
-        "model": model_label(ckpt_path),
+        "model": model,
         "split": split,
         "displacement_target": module.displacement_target,
         "checkpoint": str(ckpt_path),
@@ -132,7 +132,7 @@ def evaluate_checkpoint(
         nearest = min(dist, key=dist.get) if dist else None
         rows.append(
             {
-                "model": level["model"],
+                "model": model,
                 "split": split,
                 "object": name,
                 "nearest_train_object": nearest,

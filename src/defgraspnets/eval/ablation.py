@@ -99,7 +99,7 @@ def ablation_rows(levels: Sequence[dict]) -> list[dict]:
             f"different splits: {', '.join(splits)}"
         )
     order = list(BASELINE)
-    rows = []
+    rows, ranks = [], []
     for level in levels:
         conditions = level["conditions"]
         differ = [key for key in order if conditions[key] != BASELINE[key]]
@@ -110,7 +110,9 @@ def ablation_rows(levels: Sequence[dict]) -> list[dict]:
             condition = ", ".join(VARIABLES[key][1][conditions[key]] for key in differ)
             key = (differ[0], conditions[differ[0]])
             thesis = THESIS_TABLE_7_2.get(key, (None, None)) if len(differ) == 1 else (None, None)
-        rank = min((order.index(key) + 1 for key in differ), default=0) + (len(differ) > 1) * len(order)
+        # baseline 0, V1-V4 by their variable, variants of several variables last
+        first = min((order.index(variable) + 1 for variable in differ), default=0)
+        ranks.append(first + (len(differ) > 1) * len(order))
         rows.append(
             {
                 **{k: v for k, v in level.items() if k != "conditions"},
@@ -119,10 +121,6 @@ def ablation_rows(levels: Sequence[dict]) -> list[dict]:
                 "differs_in": differ,
                 "thesis_tau_d": thesis[0],
                 "thesis_tau_s": thesis[1],
-                "_rank": rank,
             }
         )
-    rows.sort(key=lambda r: r["_rank"])
-    for row in rows:
-        del row["_rank"]
-    return rows
+    return [row for _, row in sorted(zip(ranks, rows), key=lambda pair: pair[0])]

@@ -95,6 +95,12 @@ RELAX_BUDGET_SHARE = 1.0
 RELAX_SPRING_FLOOR = 1e-3
 
 
+def _check_int(name: str, value, minimum: int) -> None:
+    """A SolverOptions field that is an integer (not a bool) >= ``minimum``."""
+    if isinstance(value, bool) or not (isinstance(value, (int, np.integer)) and value >= minimum):
+        raise ValueError(f"SolverOptions.{name} must be an int >= {minimum}, got {value!r}")
+
+
 def _check_optional_int(name: str, value, minimum: int) -> None:
     """A SolverOptions field that is None (the default) or an integer (not a bool) >= ``minimum``."""
     if value is not None and (
@@ -428,12 +434,8 @@ class SolverOptions:
                 f"SolverOptions.banded_min_problems must be an int >= 1, got {self.banded_min_problems!r}"
             )
         _check_optional_int("line_search_trials", self.line_search_trials, 1)
-        fs = self.factor_streams
-        if isinstance(fs, bool) or not (isinstance(fs, (int, np.integer)) and fs >= 1):
-            raise ValueError(f"SolverOptions.factor_streams must be an int >= 1, got {fs!r}")
-        n = self.contact_subdivisions
-        if isinstance(n, bool) or not (isinstance(n, (int, np.integer)) and n >= 1):
-            raise ValueError(f"SolverOptions.contact_subdivisions must be an int >= 1, got {n!r}")
+        _check_int("factor_streams", self.factor_streams, 1)
+        _check_int("contact_subdivisions", self.contact_subdivisions, 1)
         sc = self.self_contact
         if not (isinstance(sc, (bool, int, float, np.integer, np.floating)) and np.isfinite(sc) and sc >= 0):
             raise ValueError(
