@@ -234,3 +234,157 @@ def test_sealed_membrane_poke_with_the_banded_solver_equals_the_direct_one():
     assert a.contact_force[2] > 0.1  # N: a real poke
     np.testing.assert_allclose(b.contact_force, a.contact_force, rtol=0, atol=1e-6 * a.contact_force[2])
     assert b.gauge_pressure == pytest.approx(a.gauge_pressure, rel=1e-8)
+
+
+def test_graph_batch_sizes_are_powers_of_two_and_their_halves_padding_at_most_a_third():
+    from defgraspnets.fem.block_tridiagonal import graph_batch_size
+
+    sizes = [graph_batch_size(g) for g in range(1, 300)]
+    assert sorted(set(sizes)) == [1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128, 192, 256, 384]
+    for g, size in zip(range(1, 300), sizes):
+        assert g <= size and (size - g) <= size / 3, g  # never smaller, at most a third padding
+        assert size == min(s for s in set(sizes) if s >= g)  # the smallest class that holds g
+    with pytest.raises(ValueError, match="problems"):
+        graph_batch_size(0)
+
+
+def _packed_problems(batch: int, definite, seed: int = 1):
+    """(layout, packed (batch, size) CPU tensor, dense matrices) of random block-tridiagonal problems with a
+    travel border."""
+    from fem_helpers import symmetric_pattern_matrices
+
+    mesh = fem.TetMesh.box(size=(0.02, 0.02, 0.04), divisions=(2, 2, 5))
+    pattern = BlockPattern.build(mesh, num_dofs=2)
+    layout = BlockTridiagonalLayout.build(pattern.rows, pattern.cols, pattern.num_vertices, pattern.num_dofs)
+    dense, values = symmetric_pattern_matrices(pattern, batch, definite, np.random.default_rng(seed))
+    flat = torch.as_tensor(values.reshape(batch, -1))
+    packed = torch.zeros(batch, layout.size, dtype=torch.float64)
+    packed[:, torch.as_tensor(layout.target)] = flat[:, torch.as_tensor(layout.source)]
+    return layout, packed, dense
+
+
+def test_the_graphs_padding_problem_is_the_identity_and_factors_to_identities():
+    """A CUDA graph's unused rows hold one packed identity matrix per problem (``FactorGraphs._identity``):
+    its factorization does not fail, its blocks' inverses are identities, its couplings and border zero,
+    and it solves to its right-hand side (it must neither break a batch nor cost a fallback)."""
+    from defgraspnets.fem.block_tridiagonal import FactorGraphs, _factorize
+
+    layout, _, _ = _packed_problems(1, [True])
+    row = FactorGraphs(layout, 0.1)._identity(torch.device("cpu"))
+    assert row.sum() == layout.vertex_scalars + layout.border  # ones on the diagonal only
+    diagonal, coupling, Z, S, failed = _factorize(layout, row.expand(2, -1).clone(), False, True)
+    assert not failed.any()
+    for block, size in zip(diagonal, layout.sizes.tolist()):
+        torch.testing.assert_close(block, torch.eye(size, dtype=torch.float64).expand(2, -1, -1))
+    assert all(float(x.abs().max()) == 0 for x in coupling[1:]) and float(Z.abs().max()) == 0
+    torch.testing.assert_close(S, torch.eye(layout.border, dtype=torch.float64).expand(2, -1, -1))
+    factor = BlockTridiagonalFactor(layout, row.expand(1, -1).clone(), explicit_inverse=True)
+    b = torch.randn(1, layout.vertex_scalars + layout.border, dtype=torch.float64)
+    torch.testing.assert_close(factor.solve(b), b)
+
+
+def test_factor_graphs_are_a_cuda_setting_and_a_solve_only_fraction():
+    """SolverOptions.factor_graphs is a memory fraction in [0, 1] (named errors otherwise); the CPU's
+    banded solver never makes graphs whatever it says."""
+    from defgraspnets.fem.system import BatchedSystem
+    from defgraspnets.grasp.datagen import _SOLVE_ONLY_FIELDS
+
+    for bad in (-0.1, 1.5, True, None, "0.1", float("nan")):
+        with pytest.raises(ValueError, match="factor_graphs"):
+            fem.SolverOptions(factor_graphs=bad)
+    assert fem.SolverOptions().factor_graphs == 0.1 and fem.SolverOptions(factor_graphs=0).factor_graphs == 0
+    assert "factor_graphs" in _SOLVE_ONLY_FIELDS
+    mesh = fem.TetMesh.box(size=(0.02, 0.02, 0.04), divisions=(2, 2, 5))
+    system = BatchedSystem(BlockPattern.build(mesh, num_dofs=2), 2, "cpu")
+    system.factor_graphs = 0.5
+    assert system._graphs() is None
+    with pytest.raises(ValueError, match="memory_fraction"):
+        from defgraspnets.fem.block_tridiagonal import FactorGraphs
+
+        FactorGraphs(system.banded_layout(), 0.0)
+
+
+@pytest.mark.gpu
+def test_cuda_graph_factors_equal_eager_ones_and_survive_later_replays():
+    """Replayed CUDA graphs factor batches of 5 and 3 problems (padded to 6 and 3) as the eager code does
+    (to round-off), flag the problem that is not positive definite, and a factor kept from the first
+    replay still solves its problems after a second replay of the same graph (its rows were copied out);
+    a memory budget too small for a graph, or a batch above ``max_problems``, factors eagerly."""
+    from defgraspnets.fem.block_tridiagonal import FactorGraphs
+
+    definite = [True, True, False, True, True]
+    layout, packed, dense = _packed_problems(5, definite)
+    packed = packed.cuda()
+    graphs = FactorGraphs(layout, 0.5)
+    first = BlockTridiagonalFactor(layout, packed, graphs=graphs)
+    eager = BlockTridiagonalFactor(layout, packed)
+    assert graphs.captures == 1 and graphs.replays == 1 and graphs.bytes == 2 * 8 * layout.size * 6
+    assert first.failed.tolist() == eager.failed.tolist() == [not d for d in definite]
+    rows = torch.as_tensor([0, 1, 3, 4], device="cuda")
+    n = dense.shape[1]
+    rhs = torch.randn(4, n, 2, dtype=torch.float64, device="cuda")
+    x_first = first.solve(rhs, rows)
+    torch.testing.assert_close(x_first, eager.solve(rhs, rows), rtol=1e-10, atol=1e-14)
+    # another batch through the same graph (5 and 6 problems share the size class 6), then a new class
+    _, other, other_dense = _packed_problems(6, [True] * 6, seed=2)
+    second = BlockTridiagonalFactor(layout, other.cuda(), graphs=graphs)
+    third = BlockTridiagonalFactor(layout, other[:3].cuda(), graphs=graphs)
+    assert graphs.captures == 2 and graphs.replays == 3
+    torch.testing.assert_close(first.solve(rhs, rows), x_first, rtol=0, atol=0)  # untouched by the replays
+    b = torch.randn(6, n, dtype=torch.float64, device="cuda")
+    for factor, count in ((second, 6), (third, 3)):
+        x = factor.solve(b[:count]).cpu().numpy()
+        for k in range(count):
+            reference = np.linalg.solve(other_dense[k], b[k].cpu().numpy())
+            assert np.linalg.norm(x[k] - reference) < 1e-10 * np.linalg.norm(reference)
+    for k, p in enumerate(rows.tolist()):
+        reference = np.linalg.solve(dense[p], rhs[k].cpu().numpy())
+        assert np.linalg.norm(x_first[k].cpu().numpy() - reference) < 1e-10 * np.linalg.norm(reference)
+    tiny = FactorGraphs(layout, 1e-12)
+    assert tiny.factor(packed) is None and tiny.captures == 0
+    few = FactorGraphs(layout, 0.5, max_problems=4)  # more problems than that: eager
+    assert few.factor(packed) is None and few.captures == 0 and few.factor(packed[:4]) is not None
+    made = BlockTridiagonalFactor(layout, packed, graphs=tiny)  # eager
+    torch.testing.assert_close(made.solve(rhs, rows), x_first, rtol=1e-10, atol=1e-14)
+
+
+@pytest.mark.gpu
+def test_cuda_squeeze_with_factor_graphs_reaches_the_eager_equilibria():
+    """The banded solver's squeeze ramp (two pads, friction, a force-controlled travel border) with CUDA
+    graphs of its factorization reaches the equilibria of the eager factorization to round-off, replaying
+    graphs for its factorizations."""
+    from fem_helpers import box_pad
+
+    mesh = fem.TetMesh.box(size=(0.02, 0.015, 0.025), divisions=(4, 3, 5), origin=(-0.01, -0.0075, -0.0125))
+    v, f = box_pad((0.012, 0.008, 0.012))
+    results = {}
+    for fraction in (0.0, 0.1):
+        bodies = [
+            fem.RigidBody(
+                name, fem.TriangleMesh(v, f), control=fem.Control.force((0, -s, 0), dof="grip"), friction=0.7
+            )
+            for name, s in (("left", 1), ("right", -1))
+        ]
+        solver = fem.QuasiStaticSolver(
+            mesh,
+            bodies,
+            fem.Material(1e5, 0.3, 1000.0),
+            batch_size=5,
+            device="cuda",
+            options=fem.SolverOptions(linear_solver="banded", factor_graphs=fraction),
+        )
+        for name, s in (("left", 1), ("right", -1)):
+            T = np.tile(np.eye(4), (5, 1, 1))
+            T[:, 1, 3] = s * (0.0075 + 0.004)
+            T[:, 0, 3] = np.linspace(-0.002, 0.002, 5)  # off-centre grasps: the object turns
+            solver.set_body_pose(name, T)
+        eq = solver.ramp(3, targets={"grip": np.linspace(1.0, 3.0, 5)})[-1]
+        eq.require_converged()
+        graphs = solver.system._factor_graphs
+        assert (graphs is None) == (fraction == 0)
+        if graphs is not None:
+            assert graphs.replays > 0 and graphs.captures >= 1
+        results[fraction] = eq
+    a, b = results[0.0], results[0.1]
+    np.testing.assert_allclose(b.displacement, a.displacement, atol=1e-8 * np.abs(a.displacement).max())
+    np.testing.assert_allclose(b.travel["grip"], a.travel["grip"], rtol=1e-8)

@@ -36,7 +36,13 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 
-__all__ = ["BlockTridiagonalLayout", "BlockTridiagonalFactor", "level_blocks"]
+__all__ = [
+    "BlockTridiagonalLayout",
+    "BlockTridiagonalFactor",
+    "FactorGraphs",
+    "graph_batch_size",
+    "level_blocks",
+]
 
 _IDENTITIES: dict = {}  # (n, dtype, device) -> the n x n identity (BlockTridiagonalFactor._identity)
 
@@ -245,6 +251,94 @@ class BlockTridiagonalLayout:
         return float(ours / (n**3 / 3))
 
 
+def _factorize(layout: BlockTridiagonalLayout, packed, lu: bool, explicit: bool):
+    """The factorization of :class:`BlockTridiagonalFactor` (its docstring): (diagonal, coupling, Z, S,
+    failed) of the problems ``packed`` (g, layout.size). Every call a fixed sequence of batched PyTorch
+    operations on tensors of fixed shapes, with no host synchronization: :class:`FactorGraphs` captures it."""
+    import torch
+
+    lay = layout
+    g = packed.shape[0]
+    s = lay.sizes.tolist()
+    blocks = lambda off, a, b: packed[:, off : off + a * b].view(g, a, b)  # noqa: E731
+    diagonal: list = []
+    coupling: list = [None]
+    failed = torch.zeros(g, dtype=torch.bool, device=packed.device)
+    for i, si in enumerate(s):
+        A = blocks(int(lay.diag_offsets[i]), si, si)
+        if i:
+            Ct = blocks(int(lay.sub_offsets[i]), si, s[i - 1]).mT
+            previous = diagonal[-1]
+            if explicit:  # L_{i-1}^-1 C_i^T
+                X = torch.bmm(previous, Ct)
+            elif lu:
+                X = torch.linalg.lu_solve(*previous, Ct)
+            else:
+                X = torch.linalg.solve_triangular(previous, Ct, upper=False)
+            A = torch.baddbmm(A, Ct.mT if lu else X.mT, X, alpha=-1.0)
+            coupling.append(X)
+        if lu:
+            LU, pivots, info = torch.linalg.lu_factor_ex(A)
+            pivot = (LU, pivots)
+        else:
+            pivot, info = torch.linalg.cholesky_ex(A)
+            if explicit:
+                pivot = torch.linalg.solve_triangular(
+                    pivot, BlockTridiagonalFactor._identity(g, si, A), upper=False
+                )
+        diagonal.append(pivot)
+        failed |= info != 0
+    Z = S = None
+    if lay.border:
+        G = packed[:, lay.border_offset : lay.corner_offset].view(g, lay.vertex_scalars, lay.border)
+        E = packed[:, lay.corner_offset : lay.size].view(g, lay.border, lay.border)
+        Z = _vertex_solve(lay, diagonal, coupling, lu, explicit, G)
+        S = torch.baddbmm(E, G.mT, Z, alpha=-1.0)
+        if lu:
+            LU, pivots, info = torch.linalg.lu_factor_ex(S)
+            S = (LU, pivots)
+        else:
+            S, info = torch.linalg.cholesky_ex(0.5 * (S + S.mT))
+        failed |= info != 0
+    return diagonal, coupling, Z, S, failed
+
+
+def _vertex_solve(layout: BlockTridiagonalLayout, D: list, X: list, lu: bool, explicit: bool, b):
+    """K^{-1} b for (g, n_v, k) right-hand sides in elimination order with the factors' diagonal ``D``
+    and coupling ``X`` blocks of those g problems.
+
+    Forward: y_i = L_i^-1 (b_i - W_i y_{i-1}) (Cholesky) or g_i = b_i - X_i^T g_{i-1} (LU); backward:
+    x_i = L_i^-T (y_i - W_{i+1}^T x_{i+1}) or x_i = D_i^-1 g_i - X_{i+1} x_{i+1}. With explicit
+    inverses (Cholesky) every step is a batched product."""
+    import torch
+
+    s = layout.sizes.tolist()
+    bounds = np.concatenate([[0], np.cumsum(s)]).tolist()
+
+    def lower(i, v):  # L_i^-1 v
+        return torch.bmm(D[i], v) if explicit else torch.linalg.solve_triangular(D[i], v, upper=False)
+
+    def upper(i, v):  # L_i^-T v
+        return torch.bmm(D[i].mT, v) if explicit else torch.linalg.solve_triangular(D[i].mT, v, upper=True)
+
+    y = []
+    for i in range(len(s)):
+        bi = b[:, bounds[i] : bounds[i + 1]]
+        if i:
+            bi = torch.baddbmm(bi, X[i].mT, y[-1], alpha=-1.0)
+        y.append(bi if lu else lower(i, bi))
+    x = [None] * len(s)
+    for i in reversed(range(len(s))):
+        last = i + 1 == len(s)
+        if lu:
+            x[i] = torch.linalg.lu_solve(*D[i], y[i])
+            if not last:
+                x[i] = torch.baddbmm(x[i], X[i + 1], x[i + 1], alpha=-1.0)
+        else:
+            x[i] = upper(i, y[i] if last else torch.baddbmm(y[i], X[i + 1], x[i + 1], alpha=-1.0))
+    return torch.cat(x, dim=1)
+
+
 class BlockTridiagonalFactor:
     """Factors of a batch of problems in one layout, and solves with any subset of them.
 
@@ -273,59 +367,29 @@ class BlockTridiagonalFactor:
     add to the factorization)."""
 
     def __init__(
-        self, layout: BlockTridiagonalLayout, packed, lu: bool = False, explicit_inverse: bool | None = None
+        self,
+        layout: BlockTridiagonalLayout,
+        packed,
+        lu: bool = False,
+        explicit_inverse: bool | None = None,
+        graphs: FactorGraphs | None = None,
     ):
         import torch
 
-        self.layout = lay = layout
+        self.layout = layout
         self.lu = bool(lu)
         if explicit_inverse is None:
             explicit_inverse = packed.device.type == "cuda"
         self.explicit_inverse = explicit = bool(explicit_inverse) and not self.lu
-        self.permutation = torch.as_tensor(lay.permutation, device=packed.device)
-        g = packed.shape[0]
-        s = lay.sizes.tolist()
-        blocks = lambda off, a, b: packed[:, off : off + a * b].view(g, a, b)  # noqa: E731
+        self.permutation = torch.as_tensor(layout.permutation, device=packed.device)
         # per block: Cholesky L_i (explicit: L_i^-1), or LU (LU_i, pivots_i) of D_i; coupling
-        # W_i^T = L_{i-1}^{-1} C_i^T or X_i = D_{i-1}^-1 C_i^T
-        self.diagonal: list = []
-        self.coupling: list = [None]
-        failed = torch.zeros(g, dtype=torch.bool, device=packed.device)
-        for i, si in enumerate(s):
-            A = blocks(int(lay.diag_offsets[i]), si, si)
-            if i:
-                Ct = blocks(int(lay.sub_offsets[i]), si, s[i - 1]).mT
-                previous = self.diagonal[-1]
-                if explicit:  # L_{i-1}^-1 C_i^T
-                    X = torch.bmm(previous, Ct)
-                elif self.lu:
-                    X = torch.linalg.lu_solve(*previous, Ct)
-                else:
-                    X = torch.linalg.solve_triangular(previous, Ct, upper=False)
-                A = torch.baddbmm(A, Ct.mT if self.lu else X.mT, X, alpha=-1.0)
-                self.coupling.append(X)
-            if self.lu:
-                LU, pivots, info = torch.linalg.lu_factor_ex(A)
-                pivot = (LU, pivots)
-            else:
-                pivot, info = torch.linalg.cholesky_ex(A)
-                if explicit:
-                    pivot = torch.linalg.solve_triangular(pivot, self._identity(g, si, A), upper=False)
-            self.diagonal.append(pivot)
-            failed |= info != 0
-        self.Z = self.S = None
-        if lay.border:
-            G = packed[:, lay.border_offset : lay.corner_offset].view(g, lay.vertex_scalars, lay.border)
-            E = packed[:, lay.corner_offset : lay.size].view(g, lay.border, lay.border)
-            self.Z = self._vertex_solve(G, None)
-            S = torch.baddbmm(E, G.mT, self.Z, alpha=-1.0)
-            if self.lu:
-                LU, pivots, info = torch.linalg.lu_factor_ex(S)
-                self.S = (LU, pivots)
-            else:
-                self.S, info = torch.linalg.cholesky_ex(0.5 * (S + S.mT))
-            failed |= info != 0
-        self.failed = failed
+        # W_i^T = L_{i-1}^{-1} C_i^T or X_i = D_{i-1}^-1 C_i^T; the border's Z and S; failed problems
+        parts = None
+        if graphs is not None and explicit and packed.device.type == "cuda":
+            parts = graphs.factor(packed)  # None where the graphs' memory budget is spent
+        if parts is None:
+            parts = _factorize(layout, packed, self.lu, explicit)
+        self.diagonal, self.coupling, self.Z, self.S, self.failed = parts
 
     @staticmethod
     def _identity(g: int, n: int, like):
@@ -349,43 +413,10 @@ class BlockTridiagonalFactor:
         return t.index_select(0, rows)
 
     def _vertex_solve(self, b, rows):
-        """K^{-1} b for (len(rows), n_v, k) right-hand sides in elimination order (``rows``: problems).
-
-        Forward: y_i = L_i^-1 (b_i - W_i y_{i-1}) (Cholesky) or g_i = b_i - X_i^T g_{i-1} (LU); backward:
-        x_i = L_i^-T (y_i - W_{i+1}^T x_{i+1}) or x_i = D_i^-1 g_i - X_{i+1} x_{i+1}. With explicit
-        inverses (Cholesky) every step is a batched product."""
-        import torch
-
-        s = self.layout.sizes.tolist()
-        bounds = np.concatenate([[0], np.cumsum(s)]).tolist()
+        """K^{-1} b for (len(rows), n_v, k) right-hand sides in elimination order (``rows``: problems)."""
         D = [self._pick(t, rows) for t in self.diagonal]
         X = [self._pick(t, rows) for t in self.coupling]
-        explicit = self.explicit_inverse
-
-        def lower(i, v):  # L_i^-1 v
-            return torch.bmm(D[i], v) if explicit else torch.linalg.solve_triangular(D[i], v, upper=False)
-
-        def upper(i, v):  # L_i^-T v
-            return (
-                torch.bmm(D[i].mT, v) if explicit else torch.linalg.solve_triangular(D[i].mT, v, upper=True)
-            )
-
-        y = []
-        for i in range(len(s)):
-            bi = b[:, bounds[i] : bounds[i + 1]]
-            if i:
-                bi = torch.baddbmm(bi, X[i].mT, y[-1], alpha=-1.0)
-            y.append(bi if self.lu else lower(i, bi))
-        x = [None] * len(s)
-        for i in reversed(range(len(s))):
-            last = i + 1 == len(s)
-            if self.lu:
-                x[i] = torch.linalg.lu_solve(*D[i], y[i])
-                if not last:
-                    x[i] = torch.baddbmm(x[i], X[i + 1], x[i + 1], alpha=-1.0)
-            else:
-                x[i] = upper(i, y[i] if last else torch.baddbmm(y[i], X[i + 1], x[i + 1], alpha=-1.0))
-        return torch.cat(x, dim=1)
+        return _vertex_solve(self.layout, D, X, self.lu, self.explicit_inverse, b)
 
     def solve(self, rhs, rows=None):
         """Solutions (len(rows), n) of right-hand sides (len(rows), n) in the BSR's scalar order, with the
@@ -419,3 +450,130 @@ class BlockTridiagonalFactor:
             x[:, lay.vertex_scalars :] = x_t
         x[:, perm] = x_v
         return x if rhs.dim() == 3 else x.squeeze(2)
+
+
+def graph_batch_size(problems: int) -> int:
+    """The batch of the CUDA graph that factors ``problems`` problems: the smallest power of two or 1.5
+    times a power of two that holds them (1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, ...): a graph per size
+    class, padded by at most a third."""
+    if problems < 1:
+        raise ValueError(f"problems must be >= 1, got {problems}")
+    power = 1
+    while True:
+        if power >= problems:
+            return power
+        if power >= 2 and power + power // 2 >= problems:
+            return power + power // 2
+        power *= 2
+
+
+class FactorGraphs:
+    """CUDA graphs of one layout's block-Cholesky factorization (explicit inverses), one per batch size
+    class (:func:`graph_batch_size`): captured on first use, replayed after.
+
+    Eager, a factorization is a sequence of small batched PyTorch calls (on the FEM benchmark's box 13
+    Cholesky factorizations, each ~40 cuSOLVER kernels, 12 triangular inversions and ~40 products: about
+    650 launches whose host cost exceeds their GPU time, `benchmarks/fem_cuda_kernel_profile_h200_s45.md`).
+    Replayed, the host launches it once. A batch of g problems is copied into the graph's input with
+    identity matrices in its remaining rows (they factor trivially), and the factors of the g problems are
+    copied out of the graph's outputs (the next replay overwrites them; a factor is kept across Newton
+    steps). The graphs share one memory pool: each replay's outputs are copied before another graph runs.
+
+    ``memory_fraction``: the inputs and outputs of all captured graphs together (2 x 8 x layout.size
+    bytes per problem of each size class: 21 MB on the FEM benchmark's 960-vertex box) stay below this
+    fraction of the GPU's memory, and a new graph takes at most half of the memory free when it is
+    captured (processes that share the GPU); a batch whose graph would not fit is factored eagerly
+    (:meth:`factor` returns None). So is a batch of more than ``max_problems`` problems: there the GPU's
+    work, not the launches, sets the time, and padding costs more than a graph saves (one H200, the box's
+    real Newton systems: 100 problems 17.3 ms eager against 21.1 ms padded to 128; 1, 4 and 16 problems
+    the same either way when timed alone, `benchmarks/fem_cuda_factor_graphs_h200_s47.json`)."""
+
+    def __init__(self, layout: BlockTridiagonalLayout, memory_fraction: float, max_problems: int = 64):
+        if not 0.0 < memory_fraction <= 1.0:
+            raise ValueError(f"memory_fraction must be in (0, 1], got {memory_fraction!r}")
+        self.layout = layout
+        self.memory_fraction = float(memory_fraction)
+        self.max_problems = int(max_problems)
+        self._graphs: dict[int, tuple] = {}  # batch size -> (graph, static input, static outputs)
+        self._pool = None
+        self._stream = None
+        self._identity_row = None  # (layout.size,) one problem's packed identity matrix
+        self.captures = 0  # graphs captured so far
+        self.replays = 0  # factorizations replayed
+
+    @property
+    def bytes(self) -> int:
+        """Inputs and outputs of the captured graphs [bytes] (what the memory budget counts)."""
+        return sum(self._graph_bytes(size) for size in self._graphs)
+
+    def _graph_bytes(self, size: int) -> int:
+        return 2 * 8 * self.layout.size * size
+
+    def _identity(self, device):
+        import torch
+
+        if self._identity_row is None:
+            lay = self.layout
+            diagonal = zip(lay.diag_offsets.tolist(), lay.sizes.tolist())
+            index = [off + j * (si + 1) for off, si in diagonal for j in range(si)]
+            index += [lay.corner_offset + j * (lay.border + 1) for j in range(lay.border)]
+            row = torch.zeros(lay.size, dtype=torch.float64, device=device)
+            row[torch.as_tensor(index, device=device)] = 1.0
+            self._identity_row = row
+        return self._identity_row
+
+    def _capture(self, size: int, device):
+        import torch
+
+        if self._pool is None:
+            self._pool = torch.cuda.graph_pool_handle()
+            self._stream = torch.cuda.Stream(device)
+        static = self._identity(device).expand(size, -1).clone()
+        # warm-up outside the capture, on the capture's stream: cuSOLVER / cuBLAS handles and workspaces,
+        # and the cached identity blocks of BlockTridiagonalFactor._identity, exist before it
+        self._stream.wait_stream(torch.cuda.current_stream(device))
+        with torch.cuda.stream(self._stream):
+            _factorize(self.layout, static, False, True)
+        torch.cuda.current_stream(device).wait_stream(self._stream)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph, pool=self._pool, stream=self._stream, capture_error_mode="thread_local"):
+            outputs = _factorize(self.layout, static, False, True)
+        self.captures += 1
+        self._graphs[size] = (graph, static, outputs)
+        return self._graphs[size]
+
+    def factor(self, packed):
+        """(diagonal, coupling, Z, S, failed) of the problems ``packed`` (g, layout.size) on CUDA, as
+        :func:`_factorize` with explicit inverses gives them; None when they are more than
+        ``max_problems``, or their size class has no graph and one would exceed the memory budget
+        (``memory_fraction``)."""
+        g = packed.shape[0]
+        if g > self.max_problems:
+            return None
+        size = graph_batch_size(g)
+        entry = self._graphs.get(size)
+        if entry is None:
+            import torch
+
+            free, total = torch.cuda.mem_get_info(packed.device)
+            new = self._graph_bytes(size)
+            if self.bytes + new > self.memory_fraction * total or new > 0.5 * free:
+                return None
+            entry = self._capture(size, packed.device)
+        graph, static, (diagonal, coupling, Z, S, failed) = entry
+        static[:g].copy_(packed)
+        if g < size:
+            static[g:].copy_(self._identity(packed.device).expand(size - g, -1))
+        graph.replay()
+        self.replays += 1
+
+        def mine(t):  # the g problems' rows, copied out of the graph's memory
+            return None if t is None else t[:g].clone()
+
+        return (
+            [mine(t) for t in diagonal],
+            [mine(t) for t in coupling],
+            mine(Z),
+            mine(S),
+            mine(failed),
+        )

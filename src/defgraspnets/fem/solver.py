@@ -147,6 +147,15 @@ class SolverOptions:
             steps, 6.97 -> 5.91 s (GPU busy 5.9 -> 5.2 ms per Newton pass); the whole benchmark unchanged
             within its run-to-run spread (median 32.2 s of 7 runs with 1, 32.4 s of 9 with 3;
             ``benchmarks/fem_cuda_factor_streams_h200_s46.json``).
+        factor_graphs: fraction of the GPU's memory that CUDA graphs of the "banded" (and "dense_banded")
+            solver's block-Cholesky factorization may hold: one graph per batch size class, captured on
+            first use and replayed after, so that the host launches a factorization's ~650 kernels once
+            (``block_tridiagonal.FactorGraphs``; 21 MB per problem of each size class on the FEM
+            benchmark's box); batches above 64 problems are factored eagerly (GPU-bound: padding costs
+            more than the launches). 0: factor eagerly (the CPU always does). Solutions equal the eager
+            ones to round-off. 0.1 (session 47, one H200, ``benchmarks/fem_cuda_factor_graphs_h200_s47.md``):
+            the FEM benchmark's bulk (100 grasps, 5 steps) median 6.79 s against 8.04 s eager; the whole
+            benchmark, graphs for every batch size, median 32.1 s against 34.2 s (10 pairs).
         cg_rtol, cg_max_iterations: tightest Krylov tolerance (relative to the right-hand side) and cap; the
             tolerance of each Newton step follows the Eisenstat-Walker forcing term (inexact Newton).
         max_step_fraction: largest vertex or travel motion per Newton iteration, as a fraction of the mesh
@@ -394,6 +403,7 @@ class SolverOptions:
     linear_solver: str = "auto"
     banded_min_problems: int = 4
     factor_streams: int = 3
+    factor_graphs: float = 0.1
     cg_rtol: float = 1e-8
     cg_max_iterations: int = 5000
     max_step_fraction: float = 0.1
@@ -435,6 +445,13 @@ class SolverOptions:
             )
         _check_optional_int("line_search_trials", self.line_search_trials, 1)
         _check_int("factor_streams", self.factor_streams, 1)
+        fg = self.factor_graphs
+        if not (
+            isinstance(fg, (int, float, np.integer, np.floating))
+            and not isinstance(fg, bool)
+            and 0 <= fg <= 1
+        ):
+            raise ValueError(f"SolverOptions.factor_graphs must be a fraction in [0, 1], got {fg!r}")
         _check_int("contact_subdivisions", self.contact_subdivisions, 1)
         sc = self.self_contact
         if not (isinstance(sc, (bool, int, float, np.integer, np.floating)) and np.isfinite(sc) and sc >= 0):
@@ -872,6 +889,7 @@ class QuasiStaticSolver:
         )
         self.system.keep_factors = self._reuse_factors
         self.system.factor_streams = int(self.options.factor_streams)
+        self.system.factor_graphs = float(self.options.factor_graphs)
         if self._reuse_factors and self.linear_solver in ("dense", "dense_banded") and dev.is_cuda:
             import torch
 

@@ -21,7 +21,7 @@ import warp as wp
 import warp.optim.linear as wpl
 import warp.sparse as wps
 
-from .block_tridiagonal import BlockTridiagonalFactor, BlockTridiagonalLayout
+from .block_tridiagonal import BlockTridiagonalFactor, BlockTridiagonalLayout, FactorGraphs
 from .mesh import TetMesh
 
 f64 = wp.float64
@@ -209,6 +209,11 @@ class BatchedSystem:
         #: Cholesky of a 2883-unknown matrix keeps only part of an H200 busy); 1: one after another on the
         #: current stream (the default here; the solver sets SolverOptions.factor_streams)
         self.factor_streams = 1
+        #: fraction of the GPU's memory that CUDA graphs of the banded solver's Cholesky factorization may
+        #: hold (``block_tridiagonal.FactorGraphs``; 0: factor eagerly, the default here; the solver sets
+        #: SolverOptions.factor_graphs). The CPU always factors eagerly
+        self.factor_graphs = 0.0
+        self._factor_graphs = None  # FactorGraphs of the banded layout (made on first use)
         self._side_streams: list = []  # torch.cuda.Stream objects, made on first use
         self._stream_views: dict = {}  # Warp's stream as a torch stream and torch's as a Warp one (CUDA)
 
@@ -652,7 +657,7 @@ class BatchedSystem:
                 index = torch.as_tensor(ids, device=dev)
                 packed = torch.zeros(len(ids), layout.size, dtype=torch.float64, device=dev)
                 packed[:, target] = values.index_select(0, index)[:, source]
-                made = BlockTridiagonalFactor(layout, packed, lu=lu)
+                made = BlockTridiagonalFactor(layout, packed, lu=lu, graphs=None if lu else self._graphs())
                 failed = made.failed.tolist()
                 for k, p in enumerate(ids):
                     self._dense_factors[p] = ("banded", made, k)
@@ -694,6 +699,14 @@ class BatchedSystem:
             worst = float("nan")
         self._warp_after_torch()
         return 1, worst
+
+    def _graphs(self) -> FactorGraphs | None:
+        """The banded factorization's CUDA graphs (:attr:`factor_graphs`), or None (off, or the CPU)."""
+        if not (self.device.is_cuda and self.factor_graphs > 0):
+            return None
+        if self._factor_graphs is None or self._factor_graphs.memory_fraction != self.factor_graphs:
+            self._factor_graphs = FactorGraphs(self.banded_layout(), self.factor_graphs)
+        return self._factor_graphs
 
     def _reported(self, ids: list[int], info=None) -> set[int]:
         """The problems of ``ids`` whose Cholesky factorization broke down (``info`` nonzero, per problem;

@@ -112,6 +112,7 @@ _SOLVE_ONLY_FIELDS = frozenset(
         "linear_solver",
         "banded_min_problems",
         "factor_streams",
+        "factor_graphs",
         "cg_rtol",
         "cg_max_iterations",
         "line_search_trials",
