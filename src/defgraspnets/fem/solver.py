@@ -155,7 +155,8 @@ class SolverOptions:
             more than the launches). 0: factor eagerly (the CPU always does). Solutions equal the eager
             ones to round-off. 0.1 (session 47, one H200, ``benchmarks/fem_cuda_factor_graphs_h200_s47.md``):
             the FEM benchmark's bulk (100 grasps, 5 steps) median 6.79 s against 8.04 s eager; the whole
-            benchmark, graphs for every batch size, median 32.1 s against 34.2 s (10 pairs).
+            benchmark, graphs for every batch size, median 32.1 s against 34.2 s (10 pairs); 32 tactile
+            poke paths 26.4 s against 33.9 s (one pair).
         cg_rtol, cg_max_iterations: tightest Krylov tolerance (relative to the right-hand side) and cap; the
             tolerance of each Newton step follows the Eisenstat-Walker forcing term (inexact Newton).
         max_step_fraction: largest vertex or travel motion per Newton iteration, as a fraction of the mesh
