@@ -386,7 +386,7 @@ class BlockTridiagonalFactor:
         # W_i^T = L_{i-1}^{-1} C_i^T or X_i = D_{i-1}^-1 C_i^T; the border's Z and S; failed problems
         parts = None
         if graphs is not None and explicit and packed.device.type == "cuda":
-            parts = graphs.factor(packed)  # None where the graphs' memory budget is spent
+            parts = graphs.factor(packed)  # None: too many problems, or the memory budget is spent
         if parts is None:
             parts = _factorize(layout, packed, self.lu, explicit)
         self.diagonal, self.coupling, self.Z, self.S, self.failed = parts
@@ -473,11 +473,13 @@ class FactorGraphs:
 
     Eager, a factorization is a sequence of small batched PyTorch calls (on the FEM benchmark's box 13
     Cholesky factorizations, each ~40 cuSOLVER kernels, 12 triangular inversions and ~40 products: about
-    650 launches whose host cost exceeds their GPU time, `benchmarks/fem_cuda_kernel_profile_h200_s45.md`).
-    Replayed, the host launches it once. A batch of g problems is copied into the graph's input with
-    identity matrices in its remaining rows (they factor trivially), and the factors of the g problems are
-    copied out of the graph's outputs (the next replay overwrites them; a factor is kept across Newton
-    steps). The graphs share one memory pool: each replay's outputs are copied before another graph runs.
+    650 kernel launches, several ms of host time, `benchmarks/fem_cuda_kernel_profile_h200_s45.md`).
+    Replayed, the host launches it in one call (~1.7 ms on an H200) and is free to queue the Newton pass's
+    other work while the GPU factors (the GPU's own time is the same). A batch of g problems is copied
+    into the graph's input with identity matrices in its remaining rows (they factor trivially), and the
+    factors of the g problems are copied out of the graph's outputs (the next replay overwrites them; a
+    factor is kept across Newton steps). The graphs share one memory pool: each replay's outputs are
+    copied before another graph runs.
 
     ``memory_fraction``: the inputs and outputs of all captured graphs together (2 x 8 x layout.size
     bytes per problem of each size class: 21 MB on the FEM benchmark's 960-vertex box) stay below this
