@@ -30,14 +30,6 @@ def factorizations(solver) -> int | None:
     return int(solver.system.factorizations.sum())
 
 
-def factor_graph_counts(solver) -> dict | None:
-    """Captures, replays and memory of the solver's banded-factorization CUDA graphs, or None (none made)."""
-    graphs = solver.system._factor_graphs
-    if graphs is None:
-        return None
-    return {"captures": graphs.captures, "replays": graphs.replays, "bytes": graphs.bytes}
-
-
 @hydra.main(version_base="1.3", config_path="../configs", config_name="benchmark_fem")
 def main(cfg: DictConfig) -> None:
     import warp as wp
@@ -170,7 +162,7 @@ def main(cfg: DictConfig) -> None:
                 # matrix factorizations of all problems (FACTORIZING_SOLVERS; None for Krylov solvers)
                 "factorizations": factorizations(solver),
                 # the banded factorization's CUDA graphs (SolverOptions.factor_graphs), or None
-                "factor_graphs": factor_graph_counts(solver),
+                "factor_graphs": solver.system.factor_graph_counts(),
                 "converged": int(eq.converged.sum()),
                 "status_counts": {str(k): int(v) for k, v in zip(*np.unique(eq.status, return_counts=True))},
                 "max_penetration_m": float(eq.max_penetration.max()),

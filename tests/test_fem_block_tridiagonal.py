@@ -297,7 +297,7 @@ def test_factor_graphs_are_a_cuda_setting_and_a_solve_only_fraction():
     mesh = fem.TetMesh.box(size=(0.02, 0.02, 0.04), divisions=(2, 2, 5))
     system = BatchedSystem(BlockPattern.build(mesh, num_dofs=2), 2, "cpu")
     system.factor_graphs = 0.5
-    assert system._graphs() is None
+    assert system._graphs() is None and system.factor_graph_counts() is None
     with pytest.raises(ValueError, match="memory_fraction"):
         from defgraspnets.fem.block_tridiagonal import FactorGraphs
 
@@ -380,10 +380,10 @@ def test_cuda_squeeze_with_factor_graphs_reaches_the_eager_equilibria():
             solver.set_body_pose(name, T)
         eq = solver.ramp(3, targets={"grip": np.linspace(1.0, 3.0, 5)})[-1]
         eq.require_converged()
-        graphs = solver.system._factor_graphs
-        assert (graphs is None) == (fraction == 0)
-        if graphs is not None:
-            assert graphs.replays > 0 and graphs.captures >= 1
+        counts = solver.system.factor_graph_counts()
+        assert (counts is None) == (fraction == 0)
+        if counts is not None:
+            assert counts["replays"] > 0 and counts["captures"] >= 1 and counts["bytes"] > 0
         results[fraction] = eq
     a, b = results[0.0], results[0.1]
     np.testing.assert_allclose(b.displacement, a.displacement, atol=1e-8 * np.abs(a.displacement).max())

@@ -700,6 +700,12 @@ class BatchedSystem:
         self._warp_after_torch()
         return 1, worst
 
+    def factor_graph_counts(self) -> dict | None:
+        """Captures, replays and memory [bytes] of the banded factorization's CUDA graphs so far, or None
+        (none made: off, the CPU, or no banded factorization yet)."""
+        g = self._factor_graphs
+        return None if g is None else {"captures": g.captures, "replays": g.replays, "bytes": g.bytes}
+
     def _graphs(self) -> FactorGraphs | None:
         """The banded factorization's CUDA graphs (:attr:`factor_graphs`), or None (off, or the CPU)."""
         if not (self.device.is_cuda and self.factor_graphs > 0):
