@@ -207,6 +207,19 @@ def main(cfg: DictConfig) -> None:
             f"profiled: {kp['wall_seconds']} s, GPU busy {kp['gpu_busy_seconds']} s "
             f"({kp['gpu_busy_fraction']}), {kp['gpu_kernels']} kernels"
         )
+    if cfg.profile_host:
+        # and again under Python's profiler: where the host's time goes, its waits for the device included
+        from defgraspnets.fem.profiling import HostProfile
+
+        solver = make_squeeze_solver(mesh, grasps, material, cfg.friction, device=device, options=options)
+        with HostProfile(device) as host:
+            squeeze_ramp(solver, cfg.max_force, cfg.steps, progress=cfg.progress, barrier=cfg.barrier)
+        record["host_profile"] = host.summary(passes=solver.newton_passes)
+        out.write_text(json.dumps(record, indent=2) + "\n")
+        hp = record["host_profile"]
+        print(f"host profile: {hp['wall_seconds']} s, {hp['wall_ms_per_pass']} ms per pass; top self time:")
+        for r in hp["top_self"][:8]:
+            print(f"  {r['self_seconds']:9.3f} s {r['calls']:8d} calls  {r['function']}")
     print(
         json.dumps(
             {

@@ -41,6 +41,7 @@ def test_benchmark_fem_writes_per_step_and_per_grasp_records(tmp_path):
         *TINY,
         "profile_phases=true",
         "profile_kernels=true",
+        "profile_host=true",
         "contact_smoothing=0.005",
         "+solver.friction_stick_slip=0.01",
     )
@@ -76,6 +77,17 @@ def test_benchmark_fem_writes_per_step_and_per_grasp_records(tmp_path):
     assert profile["passes"] == record["newton_passes"] > 0 and profile["wall_seconds"] > 0
     host = {op["name"]: op for op in profile["top_host_ops"]}
     assert "aten::linalg_cholesky_ex" in host and host["aten::linalg_cholesky_ex"]["calls"] > 0
+    # the run under cProfile: the Newton pass among the repository's functions, called once per pass (the
+    # same passes again), its cumulative time within the wall time; self times ranked, callers named
+    python = record["host_profile"]
+    assert python["passes"] == record["newton_passes"]
+    repository = {r["function"].split("(")[-1].rstrip(")"): r for r in python["top_repository"]}
+    newton = repository["_newton_pass"]
+    assert newton["calls"] == record["newton_passes"] and newton["function"].startswith("defgraspnets/fem/")
+    assert 0 < newton["cumulative_seconds"] <= python["wall_seconds"]
+    own = [r["self_seconds"] for r in python["top_self"]]
+    assert own == sorted(own, reverse=True) and len(python["callers_of_top_self"]) == 5
+    assert all(python["callers_of_top_self"].values())  # every one of them has a caller
 
 
 def test_busy_seconds_counts_overlapping_kernels_once():

@@ -20,10 +20,22 @@ The union of those intervals against the wall time says how busy the GPU was; th
     with KernelProfile(solver.device) as profile:
         squeeze_ramp(solver, 15.0, 50)
     profile.summary(passes=solver.newton_passes)  # {"gpu_busy_fraction": ..., "top_kernels": [...], ...}
+
+What the host's Python does meanwhile (:class:`HostProfile`, ``profile_host=true``): Python's own profiler
+(cProfile) around the run. Each function's self time holds what it waits for inside the library calls it
+makes (a device read of Warp's ``numpy()`` or PyTorch's ``tolist()`` blocks until the GPU reaches it), so
+the repository's functions by cumulative time, and the callers of the costliest built-ins, say where a
+Newton pass's host time goes, waits included.
+
+    with HostProfile(solver.device) as host:
+        squeeze_ramp(solver, 15.0, 50)
+    host.summary(passes=solver.newton_passes)  # {"top_self": [...], "top_repository": [...], ...}
 """
 
 from __future__ import annotations
 
+import cProfile
+import pstats
 import time
 from collections import defaultdict
 
@@ -192,6 +204,86 @@ class KernelProfile:
             out["gpu_kernels_per_pass"] = round(len(kernels) / passes, 2)
             out["wall_ms_per_pass"] = round(1e3 * self.wall / passes, 3)
             out["gpu_busy_ms_per_pass"] = round(1e3 * busy / passes, 3)
+        return out
+
+
+def _function_name(key) -> str:
+    """'file:line(function)' of a pstats key, the file relative to its package (``defgraspnets/...``)."""
+    filename, line, name = key
+    if filename == "~":  # a built-in
+        return name
+    for marker in ("/defgraspnets/", "/site-packages/"):
+        if marker in filename:
+            filename = filename.split(marker, 1)[1]
+            if marker == "/defgraspnets/":
+                filename = "defgraspnets/" + filename
+            break
+    return f"{filename}:{line}({name})"
+
+
+class HostProfile:
+    """Context manager: cProfile around a run on ``device`` (module docstring). The device is synchronized
+    at entry and exit, so the wall time holds the run's own work. The profiler's overhead lengthens the run
+    (every Python call is counted): time it without the profile."""
+
+    def __init__(self, device, top: int = 25, package: str = "defgraspnets"):
+        self.device = wp.get_device(device)
+        self.top = int(top)
+        self.package = package
+        self.wall = 0.0
+        self._profile = cProfile.Profile()
+
+    def __enter__(self) -> HostProfile:
+        synchronize(self.device)
+        self._start = time.perf_counter()
+        self._profile.enable()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        synchronize(self.device)
+        self._profile.disable()
+        self.wall = time.perf_counter() - self._start
+
+    def summary(self, passes: int | None = None) -> dict:
+        """Wall seconds; the ``top`` functions by self time (any code); the ``top`` functions of
+        ``package`` by cumulative time; for the five costliest functions by self time, their three
+        costliest callers; per Newton pass where ``passes`` is given."""
+        # key -> (primitive calls, calls, self, cumulative, callers)
+        stats = pstats.Stats(self._profile).stats
+
+        def row(key):
+            _, calls, own, cumulative, _ = stats[key]
+            out = {
+                "function": _function_name(key),
+                "calls": int(calls),
+                "self_seconds": round(own, 5),
+                "cumulative_seconds": round(cumulative, 5),
+            }
+            if passes:
+                out["self_ms_per_pass"] = round(1e3 * own / passes, 4)
+            return out
+
+        by_self = sorted(stats, key=lambda k: -stats[k][2])
+        mine = [k for k in stats if f"/{self.package}/" in k[0]]
+        by_cumulative = sorted(mine, key=lambda k: -stats[k][3])
+        callers = {}
+        for key in by_self[:5]:
+            # callers: caller key -> (primitive calls, calls, self, cumulative) of this function from it
+            ranked = sorted(stats[key][4].items(), key=lambda kv: -kv[1][2])[:3]
+            callers[_function_name(key)] = [
+                {"caller": _function_name(c), "calls": int(v[1]), "self_seconds": round(v[2], 5)}
+                for c, v in ranked
+            ]
+        out = {
+            "wall_seconds": round(self.wall, 4),
+            "profiled_seconds": round(sum(v[2] for v in stats.values()), 4),
+            "top_self": [row(k) for k in by_self[: self.top]],
+            "top_repository": [row(k) for k in by_cumulative[: self.top]],
+            "callers_of_top_self": callers,
+        }
+        if passes:
+            out["passes"] = int(passes)
+            out["wall_ms_per_pass"] = round(1e3 * self.wall / passes, 3)
         return out
 
 
