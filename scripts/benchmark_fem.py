@@ -183,13 +183,19 @@ def main(cfg: DictConfig) -> None:
     if cfg.fields_out:
         # final displacement fields and statuses, to compare runs with different solver settings
         np.savez(cfg.fields_out, displacement=final.displacement, status=final.status)
+
+    def profiled_ramp(profiler):
+        """The ramp again on a fresh solver inside ``profiler(solver)``'s context: (profile, solver)."""
+        fresh = make_squeeze_solver(mesh, grasps, material, cfg.friction, device=device, options=options)
+        with profiler(fresh) as profile:
+            squeeze_ramp(fresh, cfg.max_force, cfg.steps, progress=cfg.progress, barrier=cfg.barrier)
+        return profile, fresh
+
     if cfg.profile_phases:
         # a second run of the same ramp on a fresh solver, every phase synchronized and timed
         from defgraspnets.fem.profiling import PhaseTimer
 
-        solver = make_squeeze_solver(mesh, grasps, material, cfg.friction, device=device, options=options)
-        with PhaseTimer(solver) as phases:
-            squeeze_ramp(solver, cfg.max_force, cfg.steps, progress=cfg.progress, barrier=cfg.barrier)
+        phases, _ = profiled_ramp(PhaseTimer)
         record["phases"] = phases.summary()
         out.write_text(json.dumps(record, indent=2) + "\n")
         print("phases [s]:", {k: v["seconds"] for k, v in record["phases"].items() if k != "wall_seconds"})
@@ -197,12 +203,9 @@ def main(cfg: DictConfig) -> None:
         # and again under PyTorch's profiler: how busy the GPU is, its kernels, the host's operations
         from defgraspnets.fem.profiling import KernelProfile
 
-        solver = make_squeeze_solver(mesh, grasps, material, cfg.friction, device=device, options=options)
-        with KernelProfile(device) as profile:
-            squeeze_ramp(solver, cfg.max_force, cfg.steps, progress=cfg.progress, barrier=cfg.barrier)
-        record["kernel_profile"] = profile.summary(passes=solver.newton_passes)
+        profile, fresh = profiled_ramp(lambda _: KernelProfile(device))
+        record["kernel_profile"] = kp = profile.summary(passes=fresh.newton_passes)
         out.write_text(json.dumps(record, indent=2) + "\n")
-        kp = record["kernel_profile"]
         print(
             f"profiled: {kp['wall_seconds']} s, GPU busy {kp['gpu_busy_seconds']} s "
             f"({kp['gpu_busy_fraction']}), {kp['gpu_kernels']} kernels"
@@ -211,12 +214,9 @@ def main(cfg: DictConfig) -> None:
         # and again under Python's profiler: where the host's time goes, its waits for the device included
         from defgraspnets.fem.profiling import HostProfile
 
-        solver = make_squeeze_solver(mesh, grasps, material, cfg.friction, device=device, options=options)
-        with HostProfile(device) as host:
-            squeeze_ramp(solver, cfg.max_force, cfg.steps, progress=cfg.progress, barrier=cfg.barrier)
-        record["host_profile"] = host.summary(passes=solver.newton_passes)
+        host, fresh = profiled_ramp(lambda _: HostProfile(device))
+        record["host_profile"] = hp = host.summary(passes=fresh.newton_passes)
         out.write_text(json.dumps(record, indent=2) + "\n")
-        hp = record["host_profile"]
         print(f"host profile: {hp['wall_seconds']} s, {hp['wall_ms_per_pass']} ms per pass; top self time:")
         for r in hp["top_self"][:8]:
             print(f"  {r['self_seconds']:9.3f} s {r['calls']:8d} calls  {r['function']}")

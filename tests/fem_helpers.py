@@ -40,10 +40,10 @@ def box_pad(size=(0.02, 0.02, 0.01)):
     return np.asarray(m.vertices), np.asarray(m.faces)
 
 
-def pad_squeeze_solver(offsets, **options):
+def pad_squeeze_solver(offsets, device: str = "cpu", **options):
     """Two Franka-like pads squeeze a 20 x 15 x 25 mm box (E = 100 kPa) with friction 0.7, force-controlled
     along the shared dof "grip"; one problem per entry of ``offsets`` [m], where the pads grip along x
-    (off-centre grasps turn the object). ``options``: SolverOptions fields; CPU."""
+    (off-centre grasps turn the object). ``options``: SolverOptions fields; on ``device``."""
     from defgraspnets import fem
 
     offsets = np.asarray(offsets, dtype=float)
@@ -61,7 +61,7 @@ def pad_squeeze_solver(offsets, **options):
         bodies,
         fem.Material(1e5, 0.3, 1000.0),
         batch_size=B,
-        device="cpu",
+        device=device,
         options=fem.SolverOptions(**options),
     )
     for name, s in (("left", 1), ("right", -1)):

@@ -353,31 +353,14 @@ def test_cuda_squeeze_with_factor_graphs_reaches_the_eager_equilibria():
     """The banded solver's squeeze ramp (two pads, friction, a force-controlled travel border) with CUDA
     graphs of its factorization reaches the equilibria of the eager factorization to round-off, replaying
     graphs for its factorizations."""
-    from fem_helpers import box_pad
+    from fem_helpers import pad_squeeze_solver
 
-    mesh = fem.TetMesh.box(size=(0.02, 0.015, 0.025), divisions=(4, 3, 5), origin=(-0.01, -0.0075, -0.0125))
-    v, f = box_pad((0.012, 0.008, 0.012))
     results = {}
     for fraction in (0.0, 0.1):
-        bodies = [
-            fem.RigidBody(
-                name, fem.TriangleMesh(v, f), control=fem.Control.force((0, -s, 0), dof="grip"), friction=0.7
-            )
-            for name, s in (("left", 1), ("right", -1))
-        ]
-        solver = fem.QuasiStaticSolver(
-            mesh,
-            bodies,
-            fem.Material(1e5, 0.3, 1000.0),
-            batch_size=5,
-            device="cuda",
-            options=fem.SolverOptions(linear_solver="banded", factor_graphs=fraction),
+        # off-centre grasps: the object turns
+        solver = pad_squeeze_solver(
+            np.linspace(-0.002, 0.002, 5), device="cuda", linear_solver="banded", factor_graphs=fraction
         )
-        for name, s in (("left", 1), ("right", -1)):
-            T = np.tile(np.eye(4), (5, 1, 1))
-            T[:, 1, 3] = s * (0.0075 + 0.004)
-            T[:, 0, 3] = np.linspace(-0.002, 0.002, 5)  # off-centre grasps: the object turns
-            solver.set_body_pose(name, T)
         eq = solver.ramp(3, targets={"grip": np.linspace(1.0, 3.0, 5)})[-1]
         eq.require_converged()
         counts = solver.system.factor_graph_counts()
