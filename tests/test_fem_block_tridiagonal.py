@@ -264,13 +264,13 @@ def _packed_problems(batch: int, definite, seed: int = 1):
 
 
 def test_the_graphs_padding_problem_is_the_identity_and_factors_to_identities():
-    """A CUDA graph's unused rows hold one packed identity matrix per problem (``FactorGraphs._identity``):
+    """A CUDA graph's unused rows hold one packed identity matrix per problem (``FactorGraphs._padding_row``):
     its factorization does not fail, its blocks' inverses are identities, its couplings and border zero,
     and it solves to its right-hand side (it must neither break a batch nor cost a fallback)."""
     from defgraspnets.fem.block_tridiagonal import FactorGraphs, _factorize
 
     layout, _, _ = _packed_problems(1, [True])
-    row = FactorGraphs(layout, 0.1)._identity(torch.device("cpu"))
+    row = FactorGraphs(layout, 0.1)._padding_row(torch.device("cpu"))
     assert row.sum() == layout.vertex_scalars + layout.border  # ones on the diagonal only
     diagonal, coupling, Z, S, failed = _factorize(layout, row.expand(2, -1).clone(), False, True)
     assert not failed.any()

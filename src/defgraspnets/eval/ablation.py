@@ -23,6 +23,8 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+from .report import LEVEL_COLUMNS
+
 __all__ = [
     "ABLATION_COLUMNS",
     "BASELINE",
@@ -59,18 +61,26 @@ THESIS_TABLE_7_2 = {
     ("force_on", "nodes"): (0.58, 0.74),
 }
 
+_LEVEL_COLUMN = {column[0]: column for column in LEVEL_COLUMNS}
+#: the level table's columns (:data:`~defgraspnets.eval.report.LEVEL_COLUMNS`) in Table 7.2's order
+#: (deformation before stress), after the variant and before the thesis's values
 ABLATION_COLUMNS = (
     ("variant", "Variant", "{}"),
     ("model", "Model", "{}"),
     ("condition", "Condition", "{}"),
-    ("displacement_target", "Displacement", "{}"),
-    ("samples", "Test samples", "{:d}"),
-    ("tau_d", "τ_d ↑", "{:.2f}"),
-    ("tau_s", "τ_s ↑", "{:.2f}"),
-    (("tau_d_ci_low", "tau_d_ci_high"), "τ_d 95 % CI", "[{:.2f}, {:.2f}]"),
-    (("tau_s_ci_low", "tau_s_ci_high"), "τ_s 95 % CI", "[{:.2f}, {:.2f}]"),
-    ("mae_deformation_mm", "Deformation MAE [mm] ↓", "{:.3g}"),
-    ("mae_stress_kpa", "Stress MAE [kPa] ↓", "{:.3g}"),
+    *(
+        _LEVEL_COLUMN[key]
+        for key in (
+            "displacement_target",
+            "samples",
+            "tau_d",
+            "tau_s",
+            ("tau_d_ci_low", "tau_d_ci_high"),
+            ("tau_s_ci_low", "tau_s_ci_high"),
+            "mae_deformation_mm",
+            "mae_stress_kpa",
+        )
+    ),
     ("thesis_tau_d", "thesis τ_d", "{:.2f}"),
     ("thesis_tau_s", "thesis τ_s", "{:.2f}"),
 )

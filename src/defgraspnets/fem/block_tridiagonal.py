@@ -44,7 +44,19 @@ __all__ = [
     "level_blocks",
 ]
 
-_IDENTITIES: dict = {}  # (n, dtype, device) -> the n x n identity (BlockTridiagonalFactor._identity)
+_IDENTITIES: dict = {}  # (n, dtype, device) -> the n x n identity (_identities)
+
+
+def _identities(g: int, n: int, like):
+    """(g, n, n) identity matrices (a broadcast view) of ``like``'s dtype and device (one n x n identity
+    per size, dtype and device is made once: a factorization asks for one per block)."""
+    import torch
+
+    key = (n, like.dtype, like.device)
+    eye = _IDENTITIES.get(key)
+    if eye is None:
+        eye = _IDENTITIES[key] = torch.eye(n, dtype=like.dtype, device=like.device)
+    return eye.expand(g, n, n)
 
 
 def _bfs_levels(graph: sp.csr_matrix, start: int) -> tuple[np.ndarray, np.ndarray]:
@@ -283,9 +295,7 @@ def _factorize(layout: BlockTridiagonalLayout, packed, lu: bool, explicit: bool)
         else:
             pivot, info = torch.linalg.cholesky_ex(A)
             if explicit:
-                pivot = torch.linalg.solve_triangular(
-                    pivot, BlockTridiagonalFactor._identity(g, si, A), upper=False
-                )
+                pivot = torch.linalg.solve_triangular(pivot, _identities(g, si, A), upper=False)
         diagonal.append(pivot)
         failed |= info != 0
     Z = S = None
@@ -392,18 +402,6 @@ class BlockTridiagonalFactor:
         self.diagonal, self.coupling, self.Z, self.S, self.failed = parts
 
     @staticmethod
-    def _identity(g: int, n: int, like):
-        """(g, n, n) identity matrices (a broadcast view) of ``like``'s dtype and device (one n x n identity
-        per size, dtype and device is made once: a factorization asks for one per block)."""
-        import torch
-
-        key = (n, like.dtype, like.device)
-        eye = _IDENTITIES.get(key)
-        if eye is None:
-            eye = _IDENTITIES[key] = torch.eye(n, dtype=like.dtype, device=like.device)
-        return eye.expand(g, n, n)
-
-    @staticmethod
     def _pick(t, rows):
         """Rows ``rows`` (LongTensor, or None: all) of a tensor or a tuple of tensors."""
         if rows is None or t is None:
@@ -499,7 +497,7 @@ class FactorGraphs:
         self._graphs: dict[int, tuple] = {}  # batch size -> (graph, static input, static outputs)
         self._pool = None
         self._stream = None
-        self._identity_row = None  # (layout.size,) one problem's packed identity matrix
+        self._padding = None  # (layout.size,) one problem's packed identity matrix
         self.captures = 0  # graphs captured so far
         self.replays = 0  # factorizations replayed
 
@@ -511,18 +509,19 @@ class FactorGraphs:
     def _graph_bytes(self, size: int) -> int:
         return 2 * 8 * self.layout.size * size
 
-    def _identity(self, device):
+    def _padding_row(self, device):
+        """One problem's packed identity matrix (layout.size,): the graphs' unused rows."""
         import torch
 
-        if self._identity_row is None:
+        if self._padding is None:
             lay = self.layout
             diagonal = zip(lay.diag_offsets.tolist(), lay.sizes.tolist())
             index = [off + j * (si + 1) for off, si in diagonal for j in range(si)]
             index += [lay.corner_offset + j * (lay.border + 1) for j in range(lay.border)]
             row = torch.zeros(lay.size, dtype=torch.float64, device=device)
             row[torch.as_tensor(index, device=device)] = 1.0
-            self._identity_row = row
-        return self._identity_row
+            self._padding = row
+        return self._padding
 
     def _capture(self, size: int, device):
         import torch
@@ -530,9 +529,9 @@ class FactorGraphs:
         if self._pool is None:
             self._pool = torch.cuda.graph_pool_handle()
             self._stream = torch.cuda.Stream(device)
-        static = self._identity(device).expand(size, -1).clone()
+        static = self._padding_row(device).expand(size, -1).clone()
         # warm-up outside the capture, on the capture's stream: cuSOLVER / cuBLAS handles and workspaces,
-        # and the cached identity blocks of BlockTridiagonalFactor._identity, exist before it
+        # and the cached identity blocks of _identities, exist before it
         self._stream.wait_stream(torch.cuda.current_stream(device))
         with torch.cuda.stream(self._stream):
             _factorize(self.layout, static, False, True)
@@ -565,7 +564,7 @@ class FactorGraphs:
         graph, static, (diagonal, coupling, Z, S, failed) = entry
         static[:g].copy_(packed)
         if g < size:
-            static[g:].copy_(self._identity(packed.device).expand(size - g, -1))
+            static[g:].copy_(self._padding_row(packed.device).expand(size - g, -1))
         graph.replay()
         self.replays += 1
 

@@ -657,7 +657,7 @@ class BatchedSystem:
                 index = torch.as_tensor(ids, device=dev)
                 packed = torch.zeros(len(ids), layout.size, dtype=torch.float64, device=dev)
                 packed[:, target] = values.index_select(0, index)[:, source]
-                made = BlockTridiagonalFactor(layout, packed, lu=lu, graphs=None if lu else self._graphs())
+                made = BlockTridiagonalFactor(layout, packed, lu=lu, graphs=self._graphs())
                 failed = made.failed.tolist()
                 for k, p in enumerate(ids):
                     self._dense_factors[p] = ("banded", made, k)
