@@ -115,6 +115,7 @@ def main(cfg: DictConfig) -> None:
                 "banded_min_problems",
                 "line_search_trials",
                 "friction_lag_check",
+                "friction_relag_iterations",
                 "friction_stick_slip",
                 *cfg.solver,
             )

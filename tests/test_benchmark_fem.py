@@ -51,6 +51,7 @@ def test_benchmark_fem_writes_per_step_and_per_grasp_records(tmp_path):
     assert record["solver_options"]["contact_smoothing"] == 0.005  # the override, not the squeeze default
     assert record["solver_options"]["friction_stick_slip"] == 0.01  # any other SolverOptions field
     assert record["solver_options"]["friction_lag_check"] == 1000  # the squeeze default since session 44
+    assert record["solver_options"]["friction_relag_iterations"] == 4  # the engine's, kept by the squeeze
     assert record["completed_steps"] == 3 and len(record["step_seconds"]) == 3
     assert record["object"]["vertices"] == 64 and record["grasps"] == 2
     per_grasp = np.array(record["newton_iterations_per_problem"])
