@@ -10,7 +10,8 @@
 # CUDA_VISIBLE_DEVICES; unset: every training sees all GPUs), STRIDE (V2's data.ramp_stride: ramp steps /
 # model.num_steps; default 2, for 10-step ramps and the default 5 rollout steps), EVAL (extra
 # scripts/evaluate.py overrides).
-# The overrides go to every training (the same split, steps, size and budget for all five models).
+# The overrides go to every training (the same split, steps, size and budget for all five models). Once a model
+# fails no further one starts (there will be no table); the ones already running finish.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 : "${DATA:?set DATA to the shard directory}"
@@ -29,12 +30,14 @@ train() {
   # shellcheck disable=SC2086
   python train.py experiment="$experiment" data.data_dir="$DATA" hydra.run.dir="$OUT/$name" logger=csv \
     ${EXTRA[$name]} "$@" > "$OUT/$name.log" 2>&1 && touch "$OUT/$name.trained" && echo "trained $name" \
-    || echo "FAILED $name (see $OUT/$name.log)"
+    || { touch "$OUT/$name.failed"; echo "FAILED $name (see $OUT/$name.log)"; }
 }
 NAMES=(baseline v1_separate v2_multi_step v3_total_force v4_node_force)
+rm -f "$OUT"/*.trained "$OUT"/*.failed
 for k in "${!NAMES[@]}"; do
   name=${NAMES[$k]}
-  rm -f "$OUT/$name.trained"
+  # a failed model means no table: launch no further ones (those running finish)
+  compgen -G "$OUT/*.failed" > /dev/null && { echo "not starting $name: a model failed"; continue; }
   train "$name" "$k" "$@" &
   while (( $(jobs -rp | wc -l) >= PARALLEL )); do wait -n || true; done
 done

@@ -192,7 +192,7 @@ def test_evaluate_script_writes_the_ablation_table(first_run, data_root):
 def test_train_ablations_script_trains_five_models_and_writes_their_table(data_root):
     """scripts/train_ablations.sh: the baseline and V1-V4 with the same overrides, two at a time, each told
     its GPU (GPUS=2: models 0-4 on GPUs 0 1 0 1 0; the CPU trainer ignores it), then one ablation table; a
-    failing override stops it before the table, naming the model."""
+    failing override stops it before the table, naming the model, and starts no model after the failure."""
     names = ["baseline", "v1_separate", "v2_multi_step", "v3_total_force", "v4_node_force"]
     out = data_root / "ablations"
     env = {**os.environ, "OMP_NUM_THREADS": "1", "WANDB_MODE": "offline", "PYTHONWARNINGS": "ignore"}
@@ -208,9 +208,15 @@ def test_train_ablations_script_trains_five_models_and_writes_their_table(data_r
     assert [row["model"] for row in rows] == names
     variables = [[], ["outputs"], ["prediction"], ["force_feature"], ["force_on"]]
     assert [row["differs_in"] for row in rows] == variables
-    env["OUT"] = str(data_root / "ablations_bad")
+    bad_out = data_root / "ablations_bad"
+    env["OUT"] = str(bad_out)
     bad = subprocess.run([*args, "model.latent=-1"], env=env, capture_output=True, text=True, timeout=600)
     assert bad.returncode != 0 and "baseline did not train" in bad.stdout
+    # the first two fail together (PARALLEL=2); the other three are never started
+    assert {p.name for p in bad_out.glob("*.failed")} == {"baseline.failed", "v1_separate.failed"}
+    for name in names[2:]:
+        assert f"not starting {name}: a model failed" in bad.stdout
+        assert not (bad_out / f"{name}.log").exists()
 
 
 def test_evaluate_script_on_the_training_part(first_run, data_root):
