@@ -157,8 +157,9 @@ class SolverOptions:
             the FEM benchmark's bulk (100 grasps, 5 steps) median 6.79 s against 8.04 s eager; the whole
             benchmark, graphs for every batch size, median 32.1 s against 34.2 s (10 pairs); 32 tactile
             poke paths 26.4 s against 33.9 s (one pair). Session 48, another H200 lease with a faster host:
-            the whole benchmark with this rule median 29.96 s against 29.48 s eager (4 pairs, eager faster in
-            3; ``benchmarks/fem_cuda_whole_graphs_ab_host_profile_h200_s48.md``): the gain depends on the host.
+            the whole benchmark with this rule median 29.96 s against 29.48 s eager (4 pairs, eager faster
+            in 3; ``benchmarks/fem_cuda_whole_graphs_ab_host_profile_h200_s48.md``): the gain depends on the
+            host.
         cg_rtol, cg_max_iterations: tightest Krylov tolerance (relative to the right-hand side) and cap; the
             tolerance of each Newton step follows the Eisenstat-Walker forcing term (inexact Newton).
         max_step_fraction: largest vertex or travel motion per Newton iteration, as a fraction of the mesh
