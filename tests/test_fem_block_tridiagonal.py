@@ -113,9 +113,7 @@ def test_factor_of_a_block_tridiagonal_matrix_with_border_matches_numpy(lu, expl
     rng = np.random.default_rng(1)
     definite = [True, False, True]
     dense, values = symmetric_pattern_matrices(pattern, 3, definite, rng)
-    flat = torch.as_tensor(values.reshape(3, -1))
-    packed = torch.zeros(3, layout.size, dtype=torch.float64)
-    packed[:, torch.as_tensor(layout.target)] = flat[:, torch.as_tensor(layout.source)]
+    packed = _pack(layout, values, 3)
     factor = BlockTridiagonalFactor(layout, packed, lu=lu, explicit_inverse=explicit_inverse)
     assert factor.explicit_inverse == (explicit_inverse and not lu)
     assert factor.failed.tolist() == [False, not lu, False]
@@ -153,9 +151,7 @@ def test_explicit_inverses_solve_ill_conditioned_positive_definite_matrices_as_t
             for r, c in zip(pattern.rows, pattern.cols)
         ]
     )
-    flat = torch.as_tensor(values.reshape(2, -1))
-    packed = torch.zeros(2, layout.size, dtype=torch.float64)
-    packed[:, torch.as_tensor(layout.target)] = flat[:, torch.as_tensor(layout.source)]
+    packed = _pack(layout, values, 2)
     rhs = torch.as_tensor(rng.normal(size=(2, n, 2)))
     errors = {}
     for explicit in (False, True):
@@ -248,6 +244,15 @@ def test_graph_batch_sizes_are_powers_of_two_and_their_halves_padding_at_most_a_
         graph_batch_size(0)
 
 
+def _pack(layout, values, batch: int):
+    """(batch, layout.size) CPU tensor: the layout's blocks of ``batch`` problems' BSR block values
+    (batch * nnz, 3, 3), problem-major."""
+    flat = torch.as_tensor(values.reshape(batch, -1))
+    packed = torch.zeros(batch, layout.size, dtype=torch.float64)
+    packed[:, torch.as_tensor(layout.target)] = flat[:, torch.as_tensor(layout.source)]
+    return packed
+
+
 def _packed_problems(batch: int, definite, seed: int = 1):
     """(layout, packed (batch, size) CPU tensor, dense matrices) of random block-tridiagonal problems with a
     travel border."""
@@ -257,9 +262,7 @@ def _packed_problems(batch: int, definite, seed: int = 1):
     pattern = BlockPattern.build(mesh, num_dofs=2)
     layout = BlockTridiagonalLayout.build(pattern.rows, pattern.cols, pattern.num_vertices, pattern.num_dofs)
     dense, values = symmetric_pattern_matrices(pattern, batch, definite, np.random.default_rng(seed))
-    flat = torch.as_tensor(values.reshape(batch, -1))
-    packed = torch.zeros(batch, layout.size, dtype=torch.float64)
-    packed[:, torch.as_tensor(layout.target)] = flat[:, torch.as_tensor(layout.source)]
+    packed = _pack(layout, values, batch)
     return layout, packed, dense
 
 

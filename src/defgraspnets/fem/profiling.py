@@ -207,17 +207,17 @@ class KernelProfile:
         return out
 
 
-def _function_name(key) -> str:
-    """'file:line(function)' of a pstats key, the file relative to its package (``defgraspnets/...``)."""
+def _function_name(key, package: str) -> str:
+    """'file:line(function)' of a pstats key, the file relative to ``package``'s parent (``package/...``) or
+    to site-packages."""
     filename, line, name = key
     if filename == "~":  # a built-in
         return name
-    for marker in ("/defgraspnets/", "/site-packages/"):
-        if marker in filename:
-            filename = filename.split(marker, 1)[1]
-            if marker == "/defgraspnets/":
-                filename = "defgraspnets/" + filename
-            break
+    mine = f"/{package}/"
+    if mine in filename:
+        filename = package + "/" + filename.split(mine, 1)[1]
+    elif "/site-packages/" in filename:
+        filename = filename.split("/site-packages/", 1)[1]
     return f"{filename}:{line}({name})"
 
 
@@ -254,7 +254,7 @@ class HostProfile:
         def row(key):
             _, calls, own, cumulative, _ = stats[key]
             out = {
-                "function": _function_name(key),
+                "function": _function_name(key, self.package),
                 "calls": int(calls),
                 "self_seconds": round(own, 5),
                 "cumulative_seconds": round(cumulative, 5),
@@ -270,8 +270,12 @@ class HostProfile:
         for key in by_self[:5]:
             # callers: caller key -> (primitive calls, calls, self, cumulative) of this function from it
             ranked = sorted(stats[key][4].items(), key=lambda kv: -kv[1][2])[:3]
-            callers[_function_name(key)] = [
-                {"caller": _function_name(c), "calls": int(v[1]), "self_seconds": round(v[2], 5)}
+            callers[_function_name(key, self.package)] = [
+                {
+                    "caller": _function_name(c, self.package),
+                    "calls": int(v[1]),
+                    "self_seconds": round(v[2], 5),
+                }
                 for c, v in ranked
             ]
         out = {
