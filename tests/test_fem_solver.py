@@ -327,10 +327,16 @@ if __name__ == "__main__":
     write_cpu_reference()
 
 
+# the factorizing solvers on the CPU and on CUDA (there the banded solver factors all its problems in one
+# batch, and a breakdown is read from the batch's flags)
+SOLVE_DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)]
+
+
+@pytest.mark.parametrize("device", SOLVE_DEVICES)
 @pytest.mark.parametrize(
     "method, factor, fallback", [("dense", "cholesky", "lu"), ("banded", "banded", "banded")]
 )
-def test_factorizing_solvers_match_numpy_with_lu_fallback_and_factor_reuse(method, factor, fallback):
+def test_factorizing_solvers_match_numpy_with_lu_fallback_and_factor_reuse(method, factor, fallback, device):
     """solve_dense and solve_banded: SPD problems by Cholesky (dense or block-tridiagonal with the travel
     rows as border), an indefinite one by LU (dense, or block LU), zero right-hand sides skipped, and a
     second right-hand side on the same matrix solved with the kept factors."""
@@ -341,11 +347,11 @@ def test_factorizing_solvers_match_numpy_with_lu_fallback_and_factor_reuse(metho
     mesh = fem.TetMesh.box(size=(L, L, L), divisions=(2, 2, 4))
     pattern = BlockPattern.build(mesh, num_dofs=2)
     B, n = 3, 3 * pattern.rows_per_problem
-    system = BatchedSystem(pattern, B, "cpu")
+    system = BatchedSystem(pattern, B, device)
     rng = np.random.default_rng(0)
     # problems 0, 1 positive definite; problem 2 indefinite (eigenvalues of both signs)
     dense, values = symmetric_pattern_matrices(pattern, B, [True, True, False], rng)
-    system.values.assign(wp.array(values, dtype=wp.mat33d, device="cpu"))
+    system.values.assign(wp.array(values, dtype=wp.mat33d, device=device))
     for _ in range(2):
         rhs = rng.normal(size=(B, n))
         rhs[1] = 0.0  # a converged problem: skipped, increment zero
@@ -363,8 +369,9 @@ def test_factorizing_solvers_match_numpy_with_lu_fallback_and_factor_reuse(metho
     assert not system._dense_factors
 
 
+@pytest.mark.parametrize("device", SOLVE_DEVICES)
 @pytest.mark.parametrize("method", ["dense", "banded", "dense_banded"])
-def test_factorizing_solvers_report_indefinite_problems_instead_of_lu(method):
+def test_factorizing_solvers_report_indefinite_problems_instead_of_lu(method, device):
     """``report_indefinite``: a marked problem whose matrix is not positive definite gets no factor and a zero
     increment and is flagged in ``indefinite`` (the Newton loop damps it instead of taking an LU step); an
     unmarked one still falls back to LU, and positive definite ones are solved whatever the mark. A factor
@@ -378,9 +385,9 @@ def test_factorizing_solvers_report_indefinite_problems_instead_of_lu(method):
     B, n = 4, 3 * pattern.rows_per_problem
     rng = np.random.default_rng(2)
     dense, values = symmetric_pattern_matrices(pattern, B, [True, False, False, True], rng)
-    system = BatchedSystem(pattern, B, "cpu")
+    system = BatchedSystem(pattern, B, device)
     system.keep_factors = True
-    system.values.assign(wp.array(values, dtype=wp.mat33d, device="cpu"))
+    system.values.assign(wp.array(values, dtype=wp.mat33d, device=device))
     solve = getattr(system, f"solve_{method}")
     kwargs = {"banded_from": 1} if method == "dense_banded" else {}
     rhs = rng.normal(size=(B, n))
