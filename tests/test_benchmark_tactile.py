@@ -25,12 +25,21 @@ def _run(tmp_path, *overrides):
 
 
 def test_benchmark_tactile_times_one_poke_path(tmp_path):
-    run = _run(tmp_path, "limit=1", "batch_size=1", "solver.rtol=2e-5", "camera_scale=0.25")
+    # the cap-4 membrane with a 40 mm sphere (one path's bookkeeping, not the membrane's resolution)
+    run = _run(
+        tmp_path,
+        "limit=1",
+        "batch_size=1",
+        "solver.rtol=2e-5",
+        "camera_scale=0.25",
+        "membrane.cap_divisions=4",
+        "indenter.radius=0.02",
+    )
     assert run.returncode == 0, run.stderr[-2000:]
     record = json.loads((tmp_path / "tactile.json").read_text())
     assert record["dataset"] == "poke" and record["device"] == "cpu"
     assert record["paths"] == 1 and record["states"] == 5 == record["samples"] + record["failed"]
-    assert record["samples"] == 5  # the pole poke, 0.5 to 2.5 cm, converges on the coarse membrane
+    assert record["samples"] == 5  # the pole poke, 0.5 to 2.5 cm, converges on the coarsest membrane
     assert record["seconds"] > 0
     # one path of 5 readings from contact onset: at least one Newton pass per load step (the pole poke goes
     # 2.5 cm deep in steps of at most 2 mm), a few per step, inflation not counted
@@ -41,6 +50,7 @@ def test_benchmark_tactile_times_one_poke_path(tmp_path):
         record["seconds_per_state"] * 10_000 / 60, rel=1e-3
     )
     assert record["solver"] == {"linear_solver": "banded", "rtol": 2e-5, "contact_smoothing": 0.01}
+    assert record["membrane"]["cap_divisions"] == 4  # the overrides are recorded
     assert not list(tmp_path.rglob("*.h5"))  # the timed shard went to a temporary directory
 
 

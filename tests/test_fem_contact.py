@@ -97,11 +97,12 @@ def test_released_stabilization_returns_the_unstabilized_equilibrium():
 
 
 def test_released_stabilization_establishes_stiff_curved_first_contacts():
-    """A 10 MPa fTetWild cylinder (r = 20 mm, h = 40 mm, 338 vertices) and four antipodal grasps whose pads
-    first touch single vertices: Newton crawls there (the step is dominated by the object's free rigid
-    modes, so the step cap shrinks the useful part) and runs out of the squeeze path's 200 iterations in
-    the first step; with released stabilization springs all four converge at 1.5 N with no spring force
-    left and Coulomb's law obeyed (measured on 16 grasps x 10 steps: 8 -> 16 of 16)."""
+    """A 10 MPa fTetWild cylinder (r = 20 mm, h = 40 mm, 338 vertices) and antipodal grasps whose pads first
+    touch single vertices: Newton crawls there (the step is dominated by the object's free rigid modes, so
+    the step cap shrinks the useful part) and runs out of the squeeze path's 200 iterations in the first
+    step; with released stabilization springs they converge at 1.5 N with no spring force left and
+    Coulomb's law obeyed (measured on 16 grasps x 10 steps: 8 -> 16 of 16). Grasps 5 and 8 here (grasps 4
+    and 6, which fail and converge alike, measured 221 and 40 iterations, were dropped for time)."""
     from pathlib import Path
 
     from defgraspnets.grasp.sampler import sample_antipodal_grasps
@@ -113,7 +114,7 @@ def test_released_stabilization_establishes_stiff_curved_first_contacts():
     )
 
     mesh = fem.TetMesh.load(Path(__file__).parent / "data" / "cylinder_r20_h40_ftetwild.vtu")
-    grasps = sample_antipodal_grasps(mesh, num_grasps=16, seed=0)[[4, 5, 6, 8]]
+    grasps = sample_antipodal_grasps(mesh, num_grasps=16, seed=0)[[5, 8]]
     mu, material = 0.7, fem.Material(1e7, 0.3, 1000.0, model="neohookean")
 
     def first_step(**overrides):
@@ -129,7 +130,7 @@ def test_released_stabilization_establishes_stiff_curved_first_contacts():
         )[0]
 
     # the plain solve, within the 200 iterations it was measured with (the squeeze path's first step has 400
-    # since session 40: then 3 of the 4 converge without stabilization too)
+    # since session 40: then 3 of grasps 4, 5, 6, 8 converge without stabilization too)
     plain = first_step(stabilization=0.0, stabilization_release=False, max_newton_first_step=200)
     assert not plain.converged.any()
     eq = first_step()  # the squeeze path's default since session 24: released stabilization

@@ -25,6 +25,14 @@ def _solver(offsets=OFFSETS, materials=None, **options) -> fem.QuasiStaticSolver
     return solver
 
 
+def _slots(batch_size: int, **options) -> fem.QuasiStaticSolver:
+    """A stream's solver: ``batch_size`` problems of the pad squeeze, not gripped (every job's start state,
+    body load included, is copied into its problem from a gripped template)."""
+    from fem_helpers import pad_squeeze_solver
+
+    return pad_squeeze_solver(OFFSETS[:batch_size], linear_solver="dense", **options)
+
+
 def _levels(job: int, steps: int = STEPS) -> list[dict]:
     return [{"grip": float(FORCES[job] * (0.2 + 0.8 * (k + 1) / STEPS))} for k in range(steps)]
 
@@ -46,7 +54,7 @@ def _stream(batch_size: int, lengths, check=None, materials=None, template=None,
     of the reports and the (problem, job) starts."""
     if template is None:
         template = _solver(materials=materials, **options)
-    solver = _solver(OFFSETS[:batch_size], **options)
+    solver = _slots(batch_size, **options)
     got, order, starts = {}, [], []
 
     def start(problems, jobs):
@@ -140,7 +148,7 @@ def test_a_flagged_job_reports_its_later_levels_and_frees_its_problem():
 
 def test_a_problem_flagged_by_its_start_reports_every_level_and_the_queue_goes_on():
     template = _solver()
-    solver = _solver(OFFSETS[:2])
+    solver = _slots(2)
     got = {}
 
     def start(problems, jobs):
@@ -172,7 +180,7 @@ def _stream_through_two(template: fem.QuasiStaticSolver, jobs: list, final_state
     """Stream ``jobs`` through two problems, job j starting from the template's problem j. Returns the
     solver, {(job, level): equilibrium}, {job: final_state(solver, problem)} taken when the job reached its
     last level (its problem still holds it), and the start and on_levels functions used."""
-    solver = _solver(OFFSETS[:2])
+    solver = _slots(2)
     got, final, holder = {}, {}, {}
 
     def start(problems, job_ids):
@@ -284,7 +292,7 @@ def test_jobs_that_set_body_loads_stream_as_solves_with_body_load():
 
 
 def test_jobs_are_checked():
-    solver = _solver(OFFSETS[:2])
+    solver = _slots(2)
 
     def run(jobs):
         solver.solve_stream(jobs, lambda p, j: None, lambda j, k, part: None)

@@ -429,7 +429,9 @@ def _acceleration_stepwise(ex: GraspExperiments, kind: str, dirs) -> tuple:
     )
 
 
-@pytest.mark.parametrize("kind", ["linear", "angular"])
+# the streaming is the same for both kinds (they differ in the load: test_angular_acceleration_thresholds_
+# are_symmetric); the angular one runs with the slow tests, for time
+@pytest.mark.parametrize("kind", ["linear", pytest.param("angular", marks=pytest.mark.slow)])
 def test_streamed_pairs_give_the_stepwise_batch_of_self_squeezed_replicas(box, two_grasps, monkeypatch, kind):
     """The G grasps are squeezed once and each (grasp, direction) pair streams its load steps from a copy
     of that state: thresholds, failures, solver statuses and Newton iterations equal bit for bit those of
