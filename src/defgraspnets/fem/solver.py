@@ -93,6 +93,10 @@ RELAX_BUDGET_SHARE = 1.0
 #: smallest fraction of the increment stabilization springs that ``stabilization_relax_decay`` weakens
 #: them to
 RELAX_SPRING_FLOOR = 1e-3
+#: with self-contact, an increment starts from the last converged state instead of the predictor's
+#: extrapolation where that would put a surface vertex deeper than this fraction of the self-contact depth
+#: (``self_contact.SELF_CONTACT_DEPTH`` h) behind the surface (``QuasiStaticSolver._start_increment``)
+PREDICTED_SELF_PENETRATION = 0.5
 
 
 def _check_int(name: str, value, minimum: int) -> None:
@@ -3186,15 +3190,24 @@ class QuasiStaticSolver:
 
     def _start_increment(self, change, lam, start, end, mask):
         """Initial state of the masked problems' next increment: the predictor, then the loads. A predicted
-        state that inverts a Neo-Hookean element (infinite energy) falls back to the last converged one."""
+        state that inverts a Neo-Hookean element (infinite energy) falls back to the last converged one, and
+        so does one that (with self-contact) puts a surface vertex deeper behind another part of the surface
+        than :data:`PREDICTED_SELF_PENETRATION` of the self-contact depth: the extrapolation runs the object
+        through itself towards where its pairs stop holding (there the penalty's candidates drop and Newton
+        stalls: a thin ring squeezed flat, its inner walls about to meet, ``benchmarks/fem_self_contact_
+        predictor_cpu_s49.md``)."""
         self._predict(change, mask)
         self._apply_increment(lam, start, end, mask)
-        if not self._barrier:
-            return
-        energy = self._energy_at(self._q, self._positions, self._travel, self._active_array(mask))
-        inverted = mask & ~np.isfinite(energy)
-        if inverted.any():
-            self._predict(change, mask, extrapolate=mask & ~inverted)
+        fallback = np.zeros(self.batch_size, dtype=bool)
+        if self._barrier:
+            energy = self._energy_at(self._q, self._positions, self._travel, self._active_array(mask))
+            fallback |= mask & ~np.isfinite(energy)
+        if self._self_contact is not None:
+            _, penetration = self.self_contact_forces()  # at the predicted state
+            deep = penetration.max(axis=1) > PREDICTED_SELF_PENETRATION * self._self_contact.depth
+            fallback |= mask & deep
+        if fallback.any():
+            self._predict(change, mask, extrapolate=mask & ~fallback)
             self._apply_increment(lam, start, end, mask)
 
     def _predict(self, change: np.ndarray, mask: np.ndarray, extrapolate: np.ndarray | None = None):
