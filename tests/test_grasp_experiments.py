@@ -429,8 +429,8 @@ def _acceleration_stepwise(ex: GraspExperiments, kind: str, dirs) -> tuple:
     )
 
 
-# the streaming is the same for both kinds (they differ in the load: test_angular_acceleration_thresholds_
-# are_symmetric); the angular one runs with the slow tests, for time
+# the streaming is the same for both kinds; they differ in the load, which has its own test for the angular
+# kind (test_angular_acceleration_thresholds_are_symmetric): the angular one runs with the slow tests
 @pytest.mark.parametrize("kind", ["linear", pytest.param("angular", marks=pytest.mark.slow)])
 def test_streamed_pairs_give_the_stepwise_batch_of_self_squeezed_replicas(box, two_grasps, monkeypatch, kind):
     """The G grasps are squeezed once and each (grasp, direction) pair streams its load steps from a copy

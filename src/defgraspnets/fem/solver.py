@@ -3194,8 +3194,8 @@ class QuasiStaticSolver:
         so does one that (with self-contact) puts a surface vertex deeper behind another part of the surface
         than :data:`PREDICTED_SELF_PENETRATION` of the self-contact depth: the extrapolation runs the object
         through itself towards where its pairs stop holding (there the penalty's candidates drop and Newton
-        stalls: a thin ring squeezed flat, its inner walls about to meet, ``benchmarks/fem_self_contact_
-        predictor_cpu_s49.md``)."""
+        stalls: a thin ring squeezed flat, its inner walls about to meet,
+        ``benchmarks/fem_self_contact_predictor_cpu_s49.md``)."""
         self._predict(change, mask)
         self._apply_increment(lam, start, end, mask)
         fallback = np.zeros(self.batch_size, dtype=bool)
