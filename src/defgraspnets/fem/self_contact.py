@@ -599,9 +599,8 @@ class SelfContact:
             device=self.device,
         )
 
-    def forces(self, positions, youngs, kappa, smoothing) -> tuple[np.ndarray, np.ndarray]:
-        """(B, N, 3) self-contact force on every vertex [N] and (B, S) penetration of each surface vertex
-        behind its paired triangle [m] (0: none), at ``positions`` with freshly found pairs."""
+    def _evaluate(self, positions, youngs, kappa, smoothing) -> None:
+        """Pairs at ``positions``, then every vertex's self-contact force and penetration (on the device)."""
         self.update_pairs(positions)
         self._force.zero_()
         self._penetration.zero_()
@@ -612,6 +611,17 @@ class SelfContact:
             outputs=[self._force, self._penetration],
             device=self.device,
         )
+
+    def penetration(self, positions, youngs, kappa, smoothing) -> np.ndarray:
+        """(B, S) penetration of each surface vertex behind its paired triangle [m] (0: none), at
+        ``positions`` with freshly found pairs (the forces stay on the device)."""
+        self._evaluate(positions, youngs, kappa, smoothing)
+        return self._penetration.numpy().reshape(self.batch_size, self.num_surface).copy()
+
+    def forces(self, positions, youngs, kappa, smoothing) -> tuple[np.ndarray, np.ndarray]:
+        """(B, N, 3) self-contact force on every vertex [N] and (B, S) penetration of each surface vertex
+        behind its paired triangle [m] (0: none), at ``positions`` with freshly found pairs."""
+        self._evaluate(positions, youngs, kappa, smoothing)
         B = self.batch_size
         return (
             self._force.numpy().reshape(B, -1, 3).copy(),

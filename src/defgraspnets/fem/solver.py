@@ -3202,9 +3202,11 @@ class QuasiStaticSolver:
         if self._barrier:
             energy = self._energy_at(self._q, self._positions, self._travel, self._active_array(mask))
             fallback |= mask & ~np.isfinite(energy)
-        if self._self_contact is not None:
-            _, penetration = self.self_contact_forces()  # at the predicted state
-            deep = penetration.max(axis=1) > PREDICTED_SELF_PENETRATION * self._self_contact.depth
+        if self._self_contact is not None:  # the predicted state's penetrations (its forces are not needed)
+            self._unpack(self._q, self._positions, self._travel)
+            sc = self._self_contact
+            penetration = sc.penetration(self._positions, self._youngs, *self._self_contact_law())
+            deep = penetration.max(axis=1) > PREDICTED_SELF_PENETRATION * sc.depth
             fallback |= mask & deep
         if fallback.any():
             self._predict(change, mask, extrapolate=mask & ~fallback)
