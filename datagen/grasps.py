@@ -84,6 +84,7 @@ def main(cfg: DictConfig) -> None:
             stabilization_relax=cfg.stabilization_relax,
             stabilization_relax_decay=cfg.stabilization_relax_decay,
             self_contact=cfg.self_contact,
+            self_contact_model=cfg.self_contact_model,
         ),
         reject_inverted=cfg.reject_inverted,
         overwrite=cfg.overwrite,

@@ -358,31 +358,39 @@ def test_no_self_contact_at_rest_on_data_path_meshes(name):
 
 
 REFERENCE = Path(__file__).parent / "data" / "self_contact_cpu_reference.npz"
+#: the same press with model "barrier"
+BARRIER_REFERENCE = Path(__file__).parent / "data" / "self_contact_barrier_cpu_reference.npz"
 
 
-def _reference_press(device: str, linear_solver: str):
-    eq, solver, _ = pressed_blocks(1.0, 2e-3, device=device, linear_solver=linear_solver)
+def _reference_press(device: str, linear_solver: str, model: str = "prism"):
+    eq, solver, _ = pressed_blocks(
+        1.0, 2e-3, device=device, linear_solver=linear_solver, self_contact_model=model
+    )
     eq.require_converged()
     force, _ = solver.self_contact_forces()
     return eq.displacement, force
 
 
 def write_cpu_reference():
-    """Regenerate tests/data/self_contact_cpu_reference.npz (the CPU's "direct" answer)."""
-    displacement, force = _reference_press("cpu", "direct")
-    np.savez_compressed(REFERENCE, displacement=displacement, force=force)
+    """Regenerate tests/data/self_contact_cpu_reference.npz and ..._barrier_... (the CPU's "direct"
+    answers)."""
+    for path, model in ((REFERENCE, "prism"), (BARRIER_REFERENCE, "barrier")):
+        displacement, force = _reference_press("cpu", "direct", model)
+        np.savez_compressed(path, displacement=displacement, force=force)
 
 
-def _assert_matches_reference(displacement, force):
-    ref = np.load(REFERENCE)
+def _assert_matches_reference(displacement, force, path=REFERENCE):
+    ref = np.load(path)
     np.testing.assert_allclose(displacement, ref["displacement"], atol=1e-9)
     np.testing.assert_allclose(force, ref["force"], atol=1e-6 * np.abs(ref["force"]).max())
 
 
-def test_cpu_matches_stored_reference():
+@pytest.mark.parametrize("model", ["prism", "barrier"])
+def test_cpu_matches_stored_reference(model):
     """The stored CPU answer that the CUDA test compares with is the current CPU solver's answer (the GPU
     machines have no CPU code generator for Warp, so both cannot run in one process there)."""
-    _assert_matches_reference(*_reference_press("cpu", "direct"))
+    path = BARRIER_REFERENCE if model == "barrier" else REFERENCE
+    _assert_matches_reference(*_reference_press("cpu", "direct", model), path=path)
 
 
 @pytest.mark.parametrize("linear_solver", ["banded", "dense_banded"])
@@ -476,6 +484,15 @@ def test_cuda_dense_with_couplings_matches_cpu():
     """The self-contact kernels on CUDA and the dense solver's couplings scattered on the GPU give the CPU's
     equilibrium (session 42, one H200: within 2e-11 m and 7e-10 N)."""
     _assert_matches_reference(*_reference_press("cuda", "dense"))
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("linear_solver", ["dense", "banded"])
+def test_cuda_barrier_matches_cpu(linear_solver):
+    """The barrier's kernels (pairs, energies, gradients, couplings, step bounds) on CUDA give the CPU's
+    equilibrium of the pressed blocks."""
+    displacement, force = _reference_press("cuda", linear_solver, "barrier")
+    _assert_matches_reference(displacement, force, path=BARRIER_REFERENCE)
 
 
 # ---------------------------------------------------------------- the "feature" model
@@ -649,3 +666,281 @@ def test_feature_model_pressed_blocks_converge_and_balance():
 
 if __name__ == "__main__":
     write_cpu_reference()
+
+
+# ---------------------------------------------------------------- the "barrier" model
+def _barrier_state(drop: float = 3.5e-4, twist: float = 0.05, seed: int = 1):
+    """The blocks with the upper block lowered by ``drop`` (0.15 mm apart: inside the barrier's 0.25 mm
+    activation distance), turned by ``twist`` rad about the vertical (its edges cross the lower block's),
+    every vertex jiggled by ~10 um: (mesh, upper block's first vertex, positions, SelfContact, pattern)."""
+    from defgraspnets.fem.system import BlockPattern
+
+    mesh, n = two_blocks()
+    x = mesh.points.copy()
+    c = x[n:].mean(axis=0)
+    cos, sin = np.cos(twist), np.sin(twist)
+    d = x[n:] - c
+    x[n:, 0] = c[0] + cos * d[:, 0] - sin * d[:, 1]
+    x[n:, 1] = c[1] + sin * d[:, 0] + cos * d[:, 1]
+    x[n:, 2] -= drop
+    x += np.random.default_rng(seed).normal(scale=1e-5, size=x.shape)
+    pattern = BlockPattern.build(mesh, 0)
+    sc = sk.SelfContact(mesh, pattern, 1, mesh.median_surface_edge_length, "cpu", model="barrier")
+    sc.update_pairs(wp.array(x, dtype=wp.vec3d, device="cpu"))
+    return mesh, n, x, sc, pattern
+
+
+def _active_pairs(sc, x):
+    """Numbers of vertex-triangle and edge-edge candidate pairs closer than the activation distance at x."""
+    from defgraspnets.fem.self_contact import SelfContactArrays  # noqa: F401 (the arrays' layout)
+
+    a = sc.arrays
+    S, K, E, KE = sc.num_surface, a.candidates, sc.num_edges, a.edge_candidates
+    faces, surface, edges = a.faces.numpy(), a.surface.numpy(), a.edges.numpy()
+    vt = 0
+    for s, f in zip(*np.nonzero(a.pair.numpy()[: S * K].reshape(S, K) >= 0)):
+        tri = x[faces[a.pair.numpy()[s * K + f]]]
+        vt += _point_triangle_distance(x[surface[s]], tri) < sc.gap
+    ee = 0
+    pairs = a.edge_pair.numpy()[: E * KE].reshape(E, KE)
+    for e, k in zip(*np.nonzero(pairs >= 0)):
+        p, q = x[surface[edges[e]]], x[surface[edges[pairs[e, k]]]]
+        ee += _segment_distance(p, q) < sc.gap
+    return vt, ee
+
+
+def _point_segment_distance(p, a, b):
+    t = np.clip((p - a) @ (b - a) / ((b - a) @ (b - a)), 0.0, 1.0)
+    return np.linalg.norm(a + t * (b - a) - p)
+
+
+def _point_triangle_distance(p, tri):
+    """Reference: the plane's distance where p projects inside the triangle, else the nearest edge's."""
+    a, b, c = tri
+    n = np.cross(b - a, c - a)
+    n /= np.linalg.norm(n)
+    q = p - ((p - a) @ n) * n
+    inside = all(np.cross(v1 - v0, q - v0) @ n >= 0 for v0, v1 in ((a, b), (b, c), (c, a)))
+    if inside:
+        return abs((p - a) @ n)
+    return min(_point_segment_distance(p, *e) for e in ((a, b), (b, c), (c, a)))
+
+
+def _segment_distance(p, q):
+    """Reference: the interior critical point of |p(s) - q(t)|^2 where it lies in [0, 1]^2, else the
+    least distance of an endpoint to the other segment."""
+    d1, d2, r = p[1] - p[0], q[1] - q[0], p[0] - q[0]
+    A = np.array([[d1 @ d1, -d1 @ d2], [-d1 @ d2, d2 @ d2]])
+    candidates = [
+        _point_segment_distance(p[0], *q),
+        _point_segment_distance(p[1], *q),
+        _point_segment_distance(q[0], *p),
+        _point_segment_distance(q[1], *p),
+    ]
+    if abs(np.linalg.det(A)) > 1e-12 * A[0, 0] * A[1, 1]:
+        s, t = np.linalg.solve(A, [-(d1 @ r), d2 @ r])
+        if 0 <= s <= 1 and 0 <= t <= 1:
+            candidates.append(np.linalg.norm(p[0] + s * d1 - q[0] - t * d2))
+    return min(candidates)
+
+
+def test_barrier_pairs_are_the_near_vertex_triangle_and_edge_edge_pairs():
+    """With the blocks 0.15 mm apart and crossed, both kinds of pairs are active; each pair's distance (the
+    kernels' closed-triangle and segment closest points) is the brute-force one."""
+    mesh, n, x, sc, _ = _barrier_state()
+    a = sc.arrays
+    S, K, E, KE = sc.num_surface, a.candidates, sc.num_edges, a.edge_candidates
+    assert sc.gap == pytest.approx(sk.SELF_CONTACT_GAP * mesh.median_surface_edge_length)
+    vt, ee = _active_pairs(sc, x)
+    assert vt > 10 and ee > 10
+    surface, faces, edges = a.surface.numpy(), a.faces.numpy(), a.edges.numpy()
+    pair, dist = a.pair.numpy()[: S * K].reshape(S, K), a.pair_distance.numpy()[: S * K].reshape(S, K)
+    rng = np.random.default_rng(0)
+    for s, k in rng.permutation(np.argwhere(pair >= 0))[:20]:
+        ref = _point_triangle_distance(x[surface[s]], x[faces[pair[s, k]]])
+        assert dist[s, k] == pytest.approx(ref, rel=1e-9)
+        # never a pair inside one block (the two blocks are the only parts apart along the surface)
+        assert (surface[s] < n) != (faces[pair[s, k]][0] < n)
+    epair = a.edge_pair.numpy()[: E * KE].reshape(E, KE)
+    edist = a.edge_pair_distance.numpy()[: E * KE].reshape(E, KE)
+    for e, k in rng.permutation(np.argwhere(epair >= 0))[:20]:
+        assert epair[e, k] > e  # each pair once
+        ref = _segment_distance(x[surface[edges[e]]], x[surface[edges[epair[e, k]]]])
+        assert edist[e, k] == pytest.approx(ref, rel=1e-9)
+
+
+def test_barrier_gradient_and_hessian_match_finite_differences():
+    """The barrier's exact gradient (vertex-triangle and edge-edge pairs) against central differences of its
+    energy with the pairs fixed; the forces sum to zero; the Gauss-Newton Hessian (pattern blocks and the
+    couplings outside it) is symmetric PSD and gives the contact's stiffness: the change of the upper block's
+    vertical force for a vertical move of that block, against finite differences of the gradient."""
+    mesh, n, x, sc, pattern = _barrier_state()
+    youngs = wp.array([E], dtype=wp.float64, device="cpu")
+    g, H = _assemble(sc, pattern, x)
+    touched = np.flatnonzero(np.linalg.norm(g, axis=1) > 0)
+    assert len(touched) > 20 and np.any(touched < n) and np.any(touched >= n)
+    assert _energy(sc, x, youngs, 1000.0, 1e-2) > 0
+    np.testing.assert_allclose(g.sum(axis=0), 0.0, atol=1e-12 * np.abs(g).max())
+    assert g[touched[touched >= n], 2].sum() < 0  # the upper block is pushed up (gradient = -force)
+    _assert_fd_gradient(sc, x, g, touched[::3], youngs, 1000.0, 1e-2, eps=1e-10)
+    rows, cols, coupling = (a.numpy() for a in sc.coupling)
+    live = np.abs(coupling).reshape(len(coupling), -1).max(axis=1) > 0
+    assert live.sum() > 10
+    index = {u: k for k, u in enumerate(touched)}
+    m = 3 * len(touched)
+    full = np.zeros((m, m))
+    for a_ in touched:
+        for b_ in touched:
+            k = pattern.block_index(np.array([a_]), np.array([b_]))[0]
+            if k >= 0:
+                full[3 * index[a_] : 3 * index[a_] + 3, 3 * index[b_] : 3 * index[b_] + 3] += H[k]
+    for r, c, blk in zip(rows[live], cols[live], coupling[live]):
+        full[3 * index[r] : 3 * index[r] + 3, 3 * index[c] : 3 * index[c] + 3] += blk
+        full[3 * index[c] : 3 * index[c] + 3, 3 * index[r] : 3 * index[r] + 3] += blk.T
+    np.testing.assert_allclose(full, full.T, atol=1e-12 * np.abs(full).max())
+    assert np.linalg.eigvalsh(full).min() > -1e-9 * np.abs(full).max()
+    # vertical stiffness of the contact: d(upper block's force_z)/d(upper block's z)
+    eps = 1e-9
+    move = np.zeros_like(x)
+    move[n:, 2] = eps
+    fd = (_assemble(sc, pattern, x + move)[0] - _assemble(sc, pattern, x - move)[0])[n:, 2].sum() / (2 * eps)
+    dz = np.zeros(m)
+    dz[[3 * index[u] + 2 for u in touched if u >= n]] = 1.0
+    upper = np.zeros(m)
+    upper[[3 * index[u] + 2 for u in touched if u >= n]] = 1.0
+    assert upper @ full @ dz == pytest.approx(fd, rel=2e-2)
+
+
+def test_barrier_energy_is_continuous_across_a_concave_crease():
+    """A vertex 0.1 mm above a valley's crease (inside the activation distance) moved across it and along
+    the faces (0.1 mm above the crease's height there): the barrier holds it all along, from the crease
+    edge's pairs in the wedge and the faces' beside it; its energy's steps shrink with the step (no jump,
+    where the prism rule has one below the surface)."""
+    from defgraspnets.fem.system import BlockPattern
+
+    mesh, v, x = crease_probe()
+    h = mesh.median_surface_edge_length
+    x[v] = [CREASE_X, PROBE_Y, SIZE[2] + 1e-4]
+    assert 1e-4 < sk.SELF_CONTACT_GAP * h
+    sc = sk.SelfContact(mesh, BlockPattern.build(mesh, 0), 1, h, "cpu", model="barrier")
+    sc.update_pairs(wp.array(x, dtype=wp.vec3d, device="cpu"))
+    youngs = wp.array([E], dtype=wp.float64, device="cpu")
+
+    def energies(offsets):
+        out = []
+        for dx in offsets:
+            y = x.copy()
+            y[v, 0] += dx
+            y[v, 2] += 0.3 * abs(dx)  # along the valley's faces, 0.1 mm above the crease's height there
+            out.append(_energy(sc, y, youngs, 1000.0, 1e-2))
+        return np.array(out)
+
+    coarse = energies(np.linspace(-1e-3, 1e-3, 201))
+    assert coarse.min() > 0.05 * coarse.max()
+    step = np.abs(np.diff(coarse)).max()
+    assert np.abs(np.diff(energies(np.linspace(-1e-3, 1e-3, 2001)))).max() < 0.2 * step
+
+
+def test_barrier_step_bound_keeps_every_pair_apart():
+    """From the blocks 0.15 mm apart, a direction that drives the upper block 1 mm down through the lower
+    one (with random moves of every vertex): the full step would put vertices inside; the bound stops the
+    step where the pairs have closed at most 90 % of their distances, short of any crossing: from there a
+    fresh pairing finds every pair apart (finite energy) and no vertex inside."""
+    mesh, n, x, sc, _ = _barrier_state()
+    N = mesh.num_vertices
+    rng = np.random.default_rng(5)
+    direction = rng.normal(scale=2e-4, size=(N, 3))
+    direction[n:, 2] -= 1e-3
+    bound = sc.step_bound(
+        wp.array(x, dtype=wp.vec3d, device="cpu"),
+        wp.array(direction, dtype=wp.vec3d, device="cpu"),
+        N,
+        wp.array([1], dtype=wp.int32, device="cpu"),
+    )
+    assert bound.shape == (1,) and 0 < bound[0] < 0.15
+    assert mesh.surface_vertices_inside(x + direction).size > 10
+    youngs = wp.array([E], dtype=wp.float64, device="cpu")
+    for t in np.linspace(0.0, bound[0], 6):
+        y = x + t * direction
+        assert mesh.surface_vertices_inside(y).size == 0
+        sc.update_pairs(wp.array(y, dtype=wp.vec3d, device="cpu"))
+        assert np.isfinite(_energy(sc, y, youngs, 1000.0, 1e-2))
+    # nothing moves: no bound
+    still = sc.step_bound(
+        wp.array(x, dtype=wp.vec3d, device="cpu"),
+        wp.zeros(N, dtype=wp.vec3d, device="cpu"),
+        N,
+        wp.array([1], dtype=wp.int32, device="cpu"),
+    )
+    assert still[0] == np.inf
+
+
+def test_barrier_refuses_a_surface_that_touches_itself_at_rest():
+    """Two blocks 0.1 mm apart at rest (within the 0.25 mm activation distance): refused with the vertex,
+    the distance and what to do."""
+    from defgraspnets.fem.system import BlockPattern
+
+    a = fem.TetMesh.box(size=SIZE, divisions=(4, 4, 2))
+    upper = a.points + [SHIFT[0], SHIFT[1], SIZE[2] + 1e-4]
+    mesh = fem.TetMesh(np.vstack([a.points, upper]), np.vstack([a.tets, a.tets + a.num_vertices]))
+    with pytest.raises(ValueError, match="within the activation distance"):
+        sk.SelfContact(
+            mesh, BlockPattern.build(mesh, 0), 1, mesh.median_surface_edge_length, "cpu", "barrier"
+        )
+    with pytest.raises(ValueError, match="within the activation distance"):
+        fem.QuasiStaticSolver(
+            mesh, [], options=fem.SolverOptions(self_contact=1.0, self_contact_model="barrier")
+        )
+
+
+def test_barrier_pressed_blocks_stay_apart_and_balance():
+    """The upper block pressed 2 mm onto the lower one (0.5 mm apart) with the barrier: converged with no
+    vertex inside the other block and every active pair's distance between 0 and the activation distance
+    d^; the forces sum to zero and are carried by the lower block's support; the blocks meet d^ early,
+    so the press force is the prism rule's at a d^ deeper press (within 3 %); "dense" and "banded" reach the
+    same equilibrium."""
+    press = 2e-3
+    on, solver, n = pressed_blocks(1.0, press, self_contact_model="barrier")
+    assert on.status[0] == fem.SolveStatus.CONVERGED
+    mesh = on.mesh
+    x = mesh.points + on.displacement[0]
+    assert mesh.surface_vertices_inside(x).size == 0
+    force, pen = solver.self_contact_forces()
+    assert not pen.any()
+    sc = solver._self_contact
+    vt, ee = _active_pairs(sc, x)
+    assert vt > 10
+    dist = sc.arrays.pair_distance.numpy()[sc.arrays.pair.numpy() >= 0]
+    assert dist.min() > 0.5 * sc.gap  # held near d^: the barrier is stiff (kappa = 1000)
+    z = mesh.points[:, 2]
+    lower_support = on.reaction_force[0, z < 1e-9].sum(axis=0)
+    pushed = force[0, n:].sum(axis=0)
+    assert pushed[2] > 0.1 * E * SIZE[0] * SIZE[1] * 0.01
+    np.testing.assert_allclose(force[0].sum(axis=0), 0.0, atol=1e-9 * np.abs(force).max())
+    np.testing.assert_allclose(lower_support, pushed, rtol=1e-4, atol=1e-6 * pushed[2])
+    prism, prism_solver, _ = pressed_blocks(1.0, press + sc.gap)
+    assert prism.status[0] == fem.SolveStatus.CONVERGED
+    assert pushed[2] == pytest.approx(prism_solver.self_contact_forces()[0][0, n:, 2].sum(), rel=3e-2)
+    for linear_solver in ("dense", "banded"):
+        other, _, _ = pressed_blocks(1.0, press, self_contact_model="barrier", linear_solver=linear_solver)
+        assert other.status[0] == fem.SolveStatus.CONVERGED
+        np.testing.assert_allclose(other.displacement, on.displacement, atol=1e-9)
+
+
+def test_barrier_increment_does_not_start_from_a_prediction_through_the_surface():
+    """The upper block pressed 0.2 mm, then 1.35 mm: the predictor's extrapolation would carry it through
+    the lower block; its path is checked with the step bound and the increment starts from the last
+    converged state instead. The press ends where a fine path of 0.1 mm presses ends."""
+
+    def path(presses) -> fem.Equilibrium:
+        solver, pressed, _ = blocks_solver(1.0, self_contact_model="barrier")
+        for press in presses:
+            eq = solver.solve(prescribed_displacement=pressed(press))
+            eq.require_converged()
+        return eq
+
+    fine = path(np.linspace(0.2e-3, 1.35e-3, 12))
+    coarse = path([0.2e-3, 1.35e-3])
+    mesh = coarse.mesh
+    assert mesh.surface_vertices_inside(mesh.points + coarse.displacement[0]).size == 0
+    np.testing.assert_allclose(coarse.displacement, fine.displacement, rtol=0, atol=1e-9)

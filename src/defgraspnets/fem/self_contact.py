@@ -67,6 +67,36 @@ session 43): worse than "prism" where it matters, hence not the default: the fli
 ring's squeeze where the walls meet (2.4 N; "prism": 15 N); on the soft cuboid neither carries the fold past
 the force maximum.
 
+Model "barrier" (IPC: Li et al., "Incremental Potential Contact", SIGGRAPH 2020) sums a log barrier over
+every candidate pair, with unsigned distances between closed primitives (no side, no prism, no depth):
+
+    E_s = sum_(v, f) k_v b(d(x_v, f)) + sum_(e, g) k_eg b(d(e, g)),
+    b(d) = -(d - d^)^2 log(d / d^) for 0 < d < d^, 0 beyond, +inf at d <= 0,
+
+over the vertex-triangle pairs (v, f) (d the distance to the closed triangle: a continuous function of the
+four points, its gradient the closest point's, as above with n = (x_v - c) / d) and the edge-edge pairs
+(e, g) of the surface's edges (d between the segments' closest points, weights (1 - s, s, -(1 - t), -t)),
+with d^ = ``SELF_CONTACT_GAP`` h, k_v as above and k_eg = s kappa E (l_e l_g / 8) / h (rest lengths: in
+face-to-face contact the crossing edge pairs per unit area then carry about the vertex pairs' stiffness).
+Every term is continuous, so the energy is (no candidate switches the acting triangle: all act), and it
+is infinite where two parts touch. Near d^ the barrier rises as k (d^ - d)^3 / d^ (C2 at d^): with kappa =
+1000 the parts rest a hair inside d^ (a pressure p closes (d^ - d) ~ h sqrt(p d^ / (3 kappa E h))), so
+they meet d^ early, 0.05 h (the rigid contact's tolerance is ~1e-2 h the other way). The line search
+never steps a pair through zero distance (where the energy would be finite again: tunnelling): each
+Newton step is cut to the length at which no candidate pair's distance can have closed by more than
+``SELF_CONTACT_STEP_FRACTION`` of itself (a pair's distance closes by at most max |dx_a - dx_b| over its
+vertices per unit step, translation-invariant, as in additive CCD), nor any other pair, which lies beyond
+the vertex's (edge's) clear radius (all nearer ones are candidates), by more than that fraction of it
+(:meth:`SelfContact.step_bound`); the predictor's extrapolation is checked the same way
+(``QuasiStaticSolver._start_increment``). Not IPC: no adaptive barrier stiffness (kappa is the rigid
+contact's), no mollifier for near-parallel edges (their pair's distance is continuous, its gradient may
+jump), no friction, and duplicate pairs (a vertex near an edge has both triangles' pairs, and the edge pairs
+through it) are summed, not merged. Pair arrays: K per vertex and ``SELF_CONTACT_EDGE_CANDIDATES`` per edge
+(each edge pair once, from its lower edge), their couplings 3 per vertex slot and 4 per edge slot. Measured
+on the thin ring (``benchmarks/fem_self_contact_barrier_cpu_s50.md``): the squeeze across its diameter 5.1
+-> 13.5 N, the one pinching one wall 7.8 -> 15 N (the whole ramp), no surface vertex inside; refuses a
+surface within d^ of itself at rest (away from the excluded neighbourhoods).
+
 Candidates. Once per Newton iteration (at assembly, from the deformed state) each surface vertex gets up to
 ``SELF_CONTACT_CANDIDATES`` nearest triangles, kept for that iteration's line search, so the energies
 compared there and the gradient belong to one function (the penalty acts on the one penetrated least deeply at
@@ -113,8 +143,16 @@ SELF_CONTACT_EXCLUSION = 2.0
 #: how a vertex's penetration is measured (``SolverOptions.self_contact_model``): "prism", the depth below
 #: the least deep triangle whose prism holds the vertex; "feature", the distance to the least distant
 #: triangle (closed: its edges and corners too) that the vertex lies behind at its closest point, and behind
-#: the neighbours across the edges that closest point lies on (continuous across triangle boundaries)
-SELF_CONTACT_MODELS = ("prism", "feature")
+#: the neighbours across the edges that closest point lies on (continuous across triangle boundaries);
+#: "barrier", a log barrier on the unsigned distances of every near vertex-triangle and edge-edge pair (no
+#: penetration: the line search never lets a pair's distance reach zero)
+SELF_CONTACT_MODELS = ("prism", "feature", "barrier")
+#: model "barrier": the distance below which a pair's barrier acts (its activation distance), in units of h
+SELF_CONTACT_GAP = 0.05
+#: model "barrier": candidate edges kept per surface edge (edge-edge pairs)
+SELF_CONTACT_EDGE_CANDIDATES = 4
+#: model "barrier": a line-search step may close at most this fraction of any pair's distance
+SELF_CONTACT_STEP_FRACTION = 0.9
 
 
 @wp.func
@@ -175,7 +213,21 @@ class SelfContactArrays:
     size: f64  # penalty length h [m]
     depth: f64  # depth cap [m]
     num_vertices: int
-    model: int  # 0: "prism", 1: "feature"
+    model: int  # 0: "prism", 1: "feature", 2: "barrier"
+    # model "barrier" (the edge arrays are built for every model; the pair arrays hold one entry otherwise)
+    gap: f64  # activation distance d^ [m]
+    clear: wp.array(
+        dtype=wp.float64
+    )  # (B S,) distance within which every triangle of vertex s is a candidate
+    edges: wp.array(dtype=wp.vec2i)  # (E,) surface edges' endpoints (surface indices)
+    edge_length: wp.array(dtype=wp.float64)  # (E,) rest lengths [m]
+    edge_blocks: wp.array2d(dtype=wp.int32)  # (E, 4) BSR blocks (a_i, a_j) of one problem at 2 i + j
+    face_edges: wp.array2d(dtype=wp.int32)  # (F, 3) edge opposite corner k of each triangle
+    edge_owner: wp.array(dtype=wp.int32)  # (E,) the first triangle of each edge
+    edge_pair: wp.array(dtype=wp.int32)  # (B E KE,) candidate edges of each surface edge (of higher index)
+    edge_pair_distance: wp.array(dtype=wp.float64)  # (B E KE,) their distances at the pairing
+    edge_clear: wp.array(dtype=wp.float64)  # (B E,) as ``clear``, for the edges
+    edge_candidates: int  # KE
 
 
 @wp.func
@@ -440,6 +492,534 @@ def self_contact_force_kernel(
         wp.atomic_add(force, o + ids[i], (-w[i] * fn) * n)
 
 
+# ---------------------------------------------------------------- model "barrier"
+@wp.func
+def barrier_energy(d: f64, kn: f64, gap: f64) -> f64:
+    """k b(d) with b(d) = -(d - d^)^2 log(d / d^) for 0 < d < d^ (IPC's barrier, C2 at d^), 0 beyond, +inf
+    at d <= 0."""
+    if d <= f64(0.0):
+        return f64(wp.inf)
+    if d >= gap:
+        return f64(0.0)
+    e = d - gap
+    return -kn * e * e * wp.log(d / gap)
+
+
+@wp.func
+def barrier_force(d: f64, kn: f64, gap: f64) -> f64:
+    """-k b'(d) >= 0 [N]: the pair's repulsion."""
+    if d <= f64(0.0) or d >= gap:
+        return f64(0.0)
+    e = d - gap
+    return kn * (f64(2.0) * e * wp.log(d / gap) + e * e / d)
+
+
+@wp.func
+def barrier_stiffness(d: f64, kn: f64, gap: f64) -> f64:
+    """k b''(d) >= 0 [N/m]."""
+    if d <= f64(0.0) or d >= gap:
+        return f64(0.0)
+    e = d - gap
+    return kn * (-f64(2.0) * wp.log(d / gap) - f64(4.0) * e / d + e * e / (d * d))
+
+
+@wp.func
+def segment_closest_parameters(a0: wp.vec3d, a1: wp.vec3d, b0: wp.vec3d, b1: wp.vec3d) -> wp.vec2d:
+    """Parameters (s, t) in [0, 1]^2 of the closest points a0 + s (a1 - a0), b0 + t (b1 - b0) of two
+    segments (Ericson 5.1.9; parallel segments: one of the closest pairs)."""
+    zero = f64(0.0)
+    one = f64(1.0)
+    d1 = a1 - a0
+    d2 = b1 - b0
+    r = a0 - b0
+    a = wp.dot(d1, d1)
+    e = wp.dot(d2, d2)
+    f = wp.dot(d2, r)
+    c = wp.dot(d1, r)
+    b = wp.dot(d1, d2)
+    denom = a * e - b * b
+    s = zero
+    if denom > f64(1e-12) * a * e:
+        s = wp.clamp((b * f - c * e) / denom, zero, one)
+    t = (b * s + f) / e
+    if t < zero:
+        t = zero
+        s = wp.clamp(-c / a, zero, one)
+    elif t > one:
+        t = one
+        s = wp.clamp((b - c) / a, zero, one)
+    return wp.vec2d(s, t)
+
+
+@wp.func
+def vertex_triangle_distance(
+    sc: SelfContactArrays, positions: wp.array(dtype=wp.vec3d), o: int, s: int, f: int
+):
+    """Distance of surface vertex s from the closed triangle f (state at offset o), r = x_v - c (c its
+    closest point) and c's barycentric weights w."""
+    ids = sc.faces[f]
+    x = positions[o + sc.surface[s]]
+    x0 = positions[o + ids[0]]
+    x1 = positions[o + ids[1]]
+    x2 = positions[o + ids[2]]
+    w = closest_point_weights(x, x0, x1, x2)
+    r = x - (w[0] * x0 + w[1] * x1 + w[2] * x2)
+    return wp.length(r), r, w
+
+
+@wp.func
+def edge_edge_distance(sc: SelfContactArrays, positions: wp.array(dtype=wp.vec3d), o: int, e: int, g: int):
+    """Distance of surface edges e and g (state at offset o), r = p - q between their closest points
+    p = a0 + s (a1 - a0) on e and q = b0 + t (b1 - b0) on g, and (s, t)."""
+    ea = sc.edges[e]
+    eb = sc.edges[g]
+    a0 = positions[o + sc.surface[ea[0]]]
+    a1 = positions[o + sc.surface[ea[1]]]
+    b0 = positions[o + sc.surface[eb[0]]]
+    b1 = positions[o + sc.surface[eb[1]]]
+    st = segment_closest_parameters(a0, a1, b0, b1)
+    r = (a0 + st[0] * (a1 - a0)) - (b0 + st[1] * (b1 - b0))
+    return wp.length(r), r, st
+
+
+@wp.func
+def edge_pair_stiffness(sc: SelfContactArrays, kappa: f64, youngs: f64, e: int, g: int) -> f64:
+    """k_eg = kappa E (l_e l_g / 8) / h of an edge-edge pair (rest lengths): in face-to-face contact the
+    edge pairs crossing per unit area then carry about the vertex pairs' stiffness."""
+    area = sc.edge_length[e] * sc.edge_length[g] / f64(8.0)
+    return ck.contact_stiffness(kappa, youngs, area, sc.size)
+
+
+@wp.func
+def keep_nearest(
+    pair: wp.array(dtype=wp.int32),
+    distance: wp.array(dtype=wp.float64),
+    first: int,
+    K: int,
+    count: int,
+    f: int,
+    d: f64,
+    dropped: f64,
+):
+    """Offer candidate f at distance d to the K-slot list at ``first`` holding ``count``: kept if a slot is
+    free or it is nearer than the farthest kept (which it replaces). Returns the new count and the least
+    distance of any candidate not kept (``dropped``, updated)."""
+    slot = count
+    n = count
+    least = dropped
+    if count < K:
+        n = count + 1
+    else:
+        far = int(0)  # noqa: UP018
+        for k in range(1, K):
+            if distance[first + k] > distance[first + far]:
+                far = k
+        slot = -1
+        if d < distance[first + far]:
+            slot = far
+            least = wp.min(least, distance[first + far])
+        else:
+            least = wp.min(least, d)
+    if slot >= 0:
+        pair[first + slot] = f
+        distance[first + slot] = d
+    return n, least
+
+
+@wp.kernel
+def barrier_pair_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    meshes: wp.array(dtype=wp.uint64),
+    radius: f64,
+    sc: SelfContactArrays,
+):
+    """The K nearest non-excluded triangles within ``radius`` of each surface vertex (unsigned distances,
+    no depth cap) and the vertex's clear radius: every triangle nearer than it is a candidate."""
+    b, s = wp.tid()
+    x = positions[b * sc.num_vertices + sc.surface[s]]
+    K = sc.candidates
+    first = (b * sc.surface.shape[0] + s) * K
+    for k in range(K):
+        sc.pair[first + k] = -1
+    r = float(radius) * 1.0001
+    lo = wp.vec3(float(x[0]) - r, float(x[1]) - r, float(x[2]) - r)
+    hi = wp.vec3(float(x[0]) + r, float(x[1]) + r, float(x[2]) + r)
+    query = wp.mesh_query_aabb(meshes[b], lo, hi)
+    f = int(0)  # noqa: UP018
+    count = int(0)  # noqa: UP018
+    dropped = radius
+    while wp.mesh_query_aabb_next(query, f):
+        if not is_excluded(sc, s, f):
+            d, rv, w = vertex_triangle_distance(sc, positions, b * sc.num_vertices, s, f)
+            if d < radius:
+                count, dropped = keep_nearest(sc.pair, sc.pair_distance, first, K, count, f, d, dropped)
+    sc.clear[b * sc.surface.shape[0] + s] = dropped
+
+
+@wp.kernel
+def edge_pair_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    meshes: wp.array(dtype=wp.uint64),
+    radius: f64,
+    sc: SelfContactArrays,
+):
+    """The KE nearest surface edges within ``radius`` of each surface edge e, of higher index than e (each
+    pair once), not on a triangle excluded for either end of e; and e's clear radius."""
+    b, e = wp.tid()
+    o = b * sc.num_vertices
+    ends = sc.edges[e]
+    xa = positions[o + sc.surface[ends[0]]]
+    xb = positions[o + sc.surface[ends[1]]]
+    K = sc.edge_candidates
+    E = sc.edges.shape[0]
+    first = (b * E + e) * K
+    for k in range(K):
+        sc.edge_pair[first + k] = -1
+    r = float(radius) * 1.0001
+    lo = wp.vec3(
+        float(wp.min(xa[0], xb[0])) - r, float(wp.min(xa[1], xb[1])) - r, float(wp.min(xa[2], xb[2])) - r
+    )
+    hi = wp.vec3(
+        float(wp.max(xa[0], xb[0])) + r, float(wp.max(xa[1], xb[1])) + r, float(wp.max(xa[2], xb[2])) + r
+    )
+    query = wp.mesh_query_aabb(meshes[b], lo, hi)
+    f = int(0)  # noqa: UP018
+    count = int(0)  # noqa: UP018
+    dropped = radius
+    while wp.mesh_query_aabb_next(query, f):
+        if not is_excluded(sc, ends[0], f) and not is_excluded(sc, ends[1], f):
+            for k in range(3):
+                g = sc.face_edges[f, k]
+                if g > e and sc.edge_owner[g] == f:  # each edge once: through its first triangle
+                    d, rv, st = edge_edge_distance(sc, positions, o, e, g)
+                    if d < radius:
+                        count, dropped = keep_nearest(
+                            sc.edge_pair, sc.edge_pair_distance, first, K, count, g, d, dropped
+                        )
+    sc.edge_clear[b * E + e] = dropped
+
+
+@wp.kernel
+def barrier_energy_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    sc: SelfContactArrays,
+    youngs: wp.array(dtype=wp.float64),
+    kappa: f64,
+    active: wp.array(dtype=wp.int32),
+    energy: wp.array(dtype=wp.float64),
+):
+    """energy[p] += the barrier of every vertex-triangle pair of surface vertex s in trial state p."""
+    p, s = wp.tid()
+    b = p % active.shape[0]
+    if active[b] == 0:
+        return
+    K = sc.candidates
+    first = (b * sc.surface.shape[0] + s) * K
+    kn = pair_stiffness(sc, kappa, youngs[b], s)
+    total = f64(0.0)
+    for k in range(K):
+        f = sc.pair[first + k]
+        if f >= 0:
+            d, r, w = vertex_triangle_distance(sc, positions, p * sc.num_vertices, s, f)
+            total += barrier_energy(d, kn, sc.gap)
+    if total > f64(0.0):
+        wp.atomic_add(energy, p, total)
+
+
+@wp.kernel
+def edge_barrier_energy_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    sc: SelfContactArrays,
+    youngs: wp.array(dtype=wp.float64),
+    kappa: f64,
+    active: wp.array(dtype=wp.int32),
+    energy: wp.array(dtype=wp.float64),
+):
+    """energy[p] += the barrier of every edge-edge pair of surface edge e in trial state p."""
+    p, e = wp.tid()
+    b = p % active.shape[0]
+    if active[b] == 0:
+        return
+    K = sc.edge_candidates
+    first = (b * sc.edges.shape[0] + e) * K
+    total = f64(0.0)
+    for k in range(K):
+        g = sc.edge_pair[first + k]
+        if g >= 0:
+            d, r, st = edge_edge_distance(sc, positions, p * sc.num_vertices, e, g)
+            total += barrier_energy(d, edge_pair_stiffness(sc, kappa, youngs[b], e, g), sc.gap)
+    if total > f64(0.0):
+        wp.atomic_add(energy, p, total)
+
+
+@wp.func
+def masked_block(c: wp.mat33d, free_a: wp.vec3d, free_b: wp.vec3d) -> wp.mat33d:
+    """Block c with the rows of a's and the columns of b's fixed components zeroed."""
+    m = wp.mat33d()
+    for i in range(3):
+        for j in range(3):
+            m[i, j] = free_a[i] * c[i, j] * free_b[j]
+    return m
+
+
+@wp.kernel
+def barrier_gradient_hessian_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    sc: SelfContactArrays,
+    youngs: wp.array(dtype=wp.float64),
+    kappa: f64,
+    rows_per_problem: int,
+    blocks_per_problem: int,
+    couplings_per_problem: int,
+    active: wp.array(dtype=wp.int32),
+    free: wp.array(dtype=wp.vec3d),
+    gradient: wp.array(dtype=wp.vec3d),
+    hessian: wp.array(dtype=wp.mat33d),
+    coupling_rows: wp.array(dtype=wp.int32),
+    coupling_cols: wp.array(dtype=wp.int32),
+    coupling: wp.array(dtype=wp.mat33d),
+):
+    """Gradient and Gauss-Newton Hessian k b''(d) J^T J of every active vertex-triangle pair of surface
+    vertex s, J = (n, -w_0 n, -w_1 n, -w_2 n), n = (x_v - c) / d; the (vertex, corner) blocks to the
+    couplings (3 per candidate slot)."""
+    b, s = wp.tid()
+    if active[b] == 0:
+        return
+    K = sc.candidates
+    S = sc.surface.shape[0]
+    first = (b * S + s) * K
+    o = b * sc.num_vertices
+    kn = pair_stiffness(sc, kappa, youngs[b], s)
+    row = b * rows_per_problem
+    ob = b * blocks_per_problem
+    v = sc.surface[s]
+    fv = free[v]
+    for k in range(K):
+        f = sc.pair[first + k]
+        if f >= 0:
+            d, r, w = vertex_triangle_distance(sc, positions, o, s, f)
+            if d > f64(0.0) and d < sc.gap:
+                n = r / d
+                fn = barrier_force(d, kn, sc.gap)
+                nn = barrier_stiffness(d, kn, sc.gap) * wp.outer(n, n)
+                wp.atomic_add(gradient, row + v, -fn * n)
+                wp.atomic_add(hessian, ob + sc.vertex_block[s], nn)
+                ids = sc.faces[f]
+                slot = b * couplings_per_problem + 3 * (s * K + k)
+                for i in range(3):
+                    wp.atomic_add(gradient, row + ids[i], (w[i] * fn) * n)
+                    for j in range(3):
+                        wp.atomic_add(hessian, ob + sc.face_blocks[f, 3 * i + j], (w[i] * w[j]) * nn)
+                    coupling_rows[slot + i] = v
+                    coupling_cols[slot + i] = ids[i]
+                    coupling[slot + i] = masked_block(-w[i] * nn, fv, free[ids[i]])
+
+
+@wp.kernel
+def edge_barrier_gradient_hessian_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    sc: SelfContactArrays,
+    youngs: wp.array(dtype=wp.float64),
+    kappa: f64,
+    rows_per_problem: int,
+    blocks_per_problem: int,
+    couplings_per_problem: int,
+    active: wp.array(dtype=wp.int32),
+    free: wp.array(dtype=wp.vec3d),
+    gradient: wp.array(dtype=wp.vec3d),
+    hessian: wp.array(dtype=wp.mat33d),
+    coupling_rows: wp.array(dtype=wp.int32),
+    coupling_cols: wp.array(dtype=wp.int32),
+    coupling: wp.array(dtype=wp.mat33d),
+):
+    """Gradient and Gauss-Newton Hessian of every active edge-edge pair (e, g) of surface edge e:
+    J = (1 - s, s, -(1 - t), -t) (x) n with n = (p - q) / d; the (e's end, g's end) blocks to the couplings
+    (4 per candidate slot, after the vertex pairs' 3 S K)."""
+    b, e = wp.tid()
+    if active[b] == 0:
+        return
+    K = sc.edge_candidates
+    E = sc.edges.shape[0]
+    S = sc.surface.shape[0]
+    first = (b * E + e) * K
+    o = b * sc.num_vertices
+    row = b * rows_per_problem
+    ob = b * blocks_per_problem
+    ea = sc.edges[e]
+    for k in range(K):
+        g = sc.edge_pair[first + k]
+        if g >= 0:
+            d, r, st = edge_edge_distance(sc, positions, o, e, g)
+            if d > f64(0.0) and d < sc.gap:
+                kn = edge_pair_stiffness(sc, kappa, youngs[b], e, g)
+                n = r / d
+                fn = barrier_force(d, kn, sc.gap)
+                nn = barrier_stiffness(d, kn, sc.gap) * wp.outer(n, n)
+                eb = sc.edges[g]
+                ca = wp.vec2d(f64(1.0) - st[0], st[0])
+                cb = wp.vec2d(-(f64(1.0) - st[1]), -st[1])
+                slot = b * couplings_per_problem + 3 * S * sc.candidates + 4 * (e * K + k)
+                for i in range(2):
+                    va = sc.surface[ea[i]]
+                    vb = sc.surface[eb[i]]
+                    wp.atomic_add(gradient, row + va, (-fn * ca[i]) * n)
+                    wp.atomic_add(gradient, row + vb, (-fn * cb[i]) * n)
+                    for j in range(2):
+                        wp.atomic_add(hessian, ob + sc.edge_blocks[e, 2 * i + j], (ca[i] * ca[j]) * nn)
+                        wp.atomic_add(hessian, ob + sc.edge_blocks[g, 2 * i + j], (cb[i] * cb[j]) * nn)
+                        wj = sc.surface[eb[j]]
+                        coupling_rows[slot + 2 * i + j] = va
+                        coupling_cols[slot + 2 * i + j] = wj
+                        coupling[slot + 2 * i + j] = masked_block((ca[i] * cb[j]) * nn, free[va], free[wj])
+
+
+@wp.kernel
+def barrier_force_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    sc: SelfContactArrays,
+    youngs: wp.array(dtype=wp.float64),
+    kappa: f64,
+    force: wp.array(dtype=wp.vec3d),
+):
+    """Barrier force of the vertex-triangle pairs of surface vertex s on every vertex (b N + v)."""
+    b, s = wp.tid()
+    K = sc.candidates
+    first = (b * sc.surface.shape[0] + s) * K
+    o = b * sc.num_vertices
+    kn = pair_stiffness(sc, kappa, youngs[b], s)
+    for k in range(K):
+        f = sc.pair[first + k]
+        if f >= 0:
+            d, r, w = vertex_triangle_distance(sc, positions, o, s, f)
+            if d > f64(0.0) and d < sc.gap:
+                fn = barrier_force(d, kn, sc.gap) / d
+                wp.atomic_add(force, o + sc.surface[s], fn * r)
+                ids = sc.faces[f]
+                for i in range(3):
+                    wp.atomic_add(force, o + ids[i], (-w[i] * fn) * r)
+
+
+@wp.kernel
+def edge_barrier_force_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    sc: SelfContactArrays,
+    youngs: wp.array(dtype=wp.float64),
+    kappa: f64,
+    force: wp.array(dtype=wp.vec3d),
+):
+    """Barrier force of the edge-edge pairs of surface edge e on every vertex (b N + v)."""
+    b, e = wp.tid()
+    K = sc.edge_candidates
+    first = (b * sc.edges.shape[0] + e) * K
+    o = b * sc.num_vertices
+    ea = sc.edges[e]
+    for k in range(K):
+        g = sc.edge_pair[first + k]
+        if g >= 0:
+            d, r, st = edge_edge_distance(sc, positions, o, e, g)
+            if d > f64(0.0) and d < sc.gap:
+                fn = barrier_force(d, edge_pair_stiffness(sc, kappa, youngs[b], e, g), sc.gap) / d
+                eb = sc.edges[g]
+                wp.atomic_add(force, o + sc.surface[ea[0]], ((f64(1.0) - st[0]) * fn) * r)
+                wp.atomic_add(force, o + sc.surface[ea[1]], (st[0] * fn) * r)
+                wp.atomic_add(force, o + sc.surface[eb[0]], (-(f64(1.0) - st[1]) * fn) * r)
+                wp.atomic_add(force, o + sc.surface[eb[1]], (-st[1] * fn) * r)
+
+
+@wp.kernel
+def surface_move_kernel(
+    direction: wp.array(dtype=wp.vec3d),
+    rows_per_problem: int,
+    sc: SelfContactArrays,
+    active: wp.array(dtype=wp.int32),
+    move: wp.array(dtype=wp.float64),
+):
+    """move[b] = the largest move |dx| of a surface vertex of problem b along ``direction`` (B R rows)."""
+    b, s = wp.tid()
+    if active[b] != 0:
+        wp.atomic_max(move, b, wp.length(direction[b * rows_per_problem + sc.surface[s]]))
+
+
+@wp.kernel
+def vertex_step_bound_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    direction: wp.array(dtype=wp.vec3d),
+    rows_per_problem: int,
+    sc: SelfContactArrays,
+    fraction: f64,
+    move: wp.array(dtype=wp.float64),
+    active: wp.array(dtype=wp.int32),
+    bound: wp.array(dtype=wp.float64),
+):
+    """bound[b] <- min(bound[b], the step along ``direction`` that closes ``fraction`` of the distance of
+    any pair of surface vertex s): per candidate |x_v - c| can shrink by at most max_i |dx_v - dx_i| per unit
+    step (c on the triangle: translation-invariant, as additive CCD); any other triangle lies beyond the
+    clear radius and closes by at most |dx_v| + move[b]."""
+    b, s = wp.tid()
+    if active[b] == 0:
+        return
+    R = rows_per_problem
+    S = sc.surface.shape[0]
+    o = b * sc.num_vertices
+    dv = direction[b * R + sc.surface[s]]
+    reach = wp.length(dv) + move[b]
+    if reach > f64(0.0):
+        wp.atomic_min(bound, b, fraction * sc.clear[b * S + s] / reach)
+    K = sc.candidates
+    first = (b * S + s) * K
+    for k in range(K):
+        f = sc.pair[first + k]
+        if f >= 0:
+            d, r, w = vertex_triangle_distance(sc, positions, o, s, f)
+            ids = sc.faces[f]
+            closing = f64(0.0)
+            for i in range(3):
+                closing = wp.max(closing, wp.length(dv - direction[b * R + ids[i]]))
+            if closing > f64(0.0):
+                wp.atomic_min(bound, b, fraction * d / closing)
+
+
+@wp.kernel
+def edge_step_bound_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    direction: wp.array(dtype=wp.vec3d),
+    rows_per_problem: int,
+    sc: SelfContactArrays,
+    fraction: f64,
+    move: wp.array(dtype=wp.float64),
+    active: wp.array(dtype=wp.int32),
+    bound: wp.array(dtype=wp.float64),
+):
+    """As :func:`vertex_step_bound_kernel` for the edge pairs of surface edge e: per candidate the distance
+    closes by at most max_ij |da_i - db_j| per unit step."""
+    b, e = wp.tid()
+    if active[b] == 0:
+        return
+    R = rows_per_problem
+    E = sc.edges.shape[0]
+    o = b * sc.num_vertices
+    ea = sc.edges[e]
+    d0 = direction[b * R + sc.surface[ea[0]]]
+    d1 = direction[b * R + sc.surface[ea[1]]]
+    reach = wp.max(wp.length(d0), wp.length(d1)) + move[b]
+    if reach > f64(0.0):
+        wp.atomic_min(bound, b, fraction * sc.edge_clear[b * E + e] / reach)
+    K = sc.edge_candidates
+    first = (b * E + e) * K
+    for k in range(K):
+        g = sc.edge_pair[first + k]
+        if g >= 0:
+            d, r, st = edge_edge_distance(sc, positions, o, e, g)
+            eb = sc.edges[g]
+            c0 = direction[b * R + sc.surface[eb[0]]]
+            c1 = direction[b * R + sc.surface[eb[1]]]
+            closing = wp.max(
+                wp.max(wp.length(d0 - c0), wp.length(d0 - c1)), wp.max(wp.length(d1 - c0), wp.length(d1 - c1))
+            )
+            if closing > f64(0.0):
+                wp.atomic_min(bound, b, fraction * d / closing)
+
+
 # ---------------------------------------------------------------- host
 def self_contact_depth(mesh) -> float:
     """Depth [m] up to which self-contact holds a surface vertex behind another part of the surface (the
@@ -464,6 +1044,22 @@ def adjacent_triangles(faces: np.ndarray) -> np.ndarray:
     out[e0] = e1 % F
     out[e1] = e0 % F
     return out.reshape(3, F).T.copy()
+
+
+def surface_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The surface's unique edges (E, 2) (sorted ends, in ``faces``' vertex numbering), the edge opposite
+    corner k of each triangle (F, 3), and each edge's first triangle (E,) (its owner: each edge is visited
+    once, through it)."""
+    F = len(faces)
+    a = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]])
+    b = np.concatenate([faces[:, 2], faces[:, 0], faces[:, 1]])
+    ends = np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1)
+    edges, inverse = np.unique(ends, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    face_edges = inverse.reshape(3, F).T.copy()
+    owner = np.full(len(edges), F, dtype=np.int64)
+    np.minimum.at(owner, inverse, np.tile(np.arange(F), 3))
+    return edges, face_edges, owner
 
 
 def excluded_triangles(mesh, radius: float, chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:
@@ -500,12 +1096,14 @@ def excluded_triangles(mesh, radius: float, chunk: int = 256) -> tuple[np.ndarra
 
 class SelfContact:
     """Self-contact of a :class:`QuasiStaticSolver`'s object: the surface data on the device, one BVH per
-    problem over the deformed surface, the vertex-triangle pairs, and the launches of the kernels above."""
+    problem over the deformed surface, the vertex-triangle pairs (and with model "barrier" the edge-edge
+    pairs), and the launches of the kernels above."""
 
     def __init__(self, mesh, pattern, batch_size: int, size: float, device, model: str = "prism"):
         if model not in SELF_CONTACT_MODELS:
             raise ValueError(f"self-contact model must be one of {SELF_CONTACT_MODELS}, got {model!r}")
         self.model = model
+        self.barrier = barrier = model == "barrier"
         self.batch_size = B = int(batch_size)
         self.device = dev = device
         N = mesh.num_vertices
@@ -515,11 +1113,16 @@ class SelfContact:
         self.num_faces = F = len(faces)
         self.radius = SELF_CONTACT_RADIUS * size
         self.depth = SELF_CONTACT_DEPTH * size
+        self.gap = SELF_CONTACT_GAP * size
         pairs = np.arange(9)
         face_blocks = pattern.block_index(faces[:, pairs // 3].ravel(), faces[:, pairs % 3].ravel())
         if np.any(face_blocks < 0):
             raise ValueError("surface triangles must be tet faces (their edges in the block pattern)")
         start, excluded = excluded_triangles(mesh, SELF_CONTACT_EXCLUSION * size)
+        edges, face_edges, owner = surface_edges(np.searchsorted(surface, faces))
+        self.num_edges = E = len(edges)
+        ends = surface[edges]
+        edge_blocks = pattern.block_index(ends[:, [0, 0, 1, 1]].ravel(), ends[:, [0, 1, 0, 1]].ravel())
         sc = SelfContactArrays()
         sc.surface = wp.array(surface, dtype=wp.int32, device=dev)
         sc.faces = wp.array(faces, dtype=wp.vec3i, device=dev)
@@ -536,37 +1139,100 @@ class SelfContact:
         sc.depth = float(self.depth)
         sc.num_vertices = N
         sc.model = SELF_CONTACT_MODELS.index(model)
+        sc.gap = float(self.gap)
+        sc.edges = wp.array(edges.astype(np.int32), dtype=wp.vec2i, device=dev)
+        sc.edge_length = wp.array(
+            np.linalg.norm(mesh.points[ends[:, 0]] - mesh.points[ends[:, 1]], axis=1),
+            dtype=wp.float64,
+            device=dev,
+        )
+        sc.edge_blocks = wp.array(edge_blocks.reshape(E, 4), dtype=wp.int32, device=dev)
+        sc.face_edges = wp.array(face_edges.astype(np.int32), dtype=wp.int32, device=dev)
+        sc.edge_owner = wp.array(owner.astype(np.int32), dtype=wp.int32, device=dev)
+        sc.edge_candidates = KE = SELF_CONTACT_EDGE_CANDIDATES
+        per = (lambda n: n) if barrier else (lambda n: 1)  # noqa: E731 (the pair arrays of "barrier" only)
+        sc.clear = wp.zeros(per(B * S), dtype=wp.float64, device=dev)
+        sc.edge_pair = wp.full(per(B * E * KE), -1, dtype=wp.int32, device=dev)
+        sc.edge_pair_distance = wp.zeros(per(B * E * KE), dtype=wp.float64, device=dev)
+        sc.edge_clear = wp.zeros(per(B * E), dtype=wp.float64, device=dev)
         self.arrays = sc
         self._points = wp.zeros(B * N, dtype=wp.vec3, device=dev)
         indices = wp.array(faces.ravel(), dtype=wp.int32, device=dev)
         self._meshes = [wp.Mesh(points=self._points[b * N : (b + 1) * N], indices=indices) for b in range(B)]
         self._mesh_ids = wp.array([m.id for m in self._meshes], dtype=wp.uint64, device=dev)
         self._force = wp.zeros(B * N, dtype=wp.vec3d, device=dev)
-        #: the (vertex, triangle vertex) Hessian blocks of the last assembly, outside the block pattern
+        #: coupling blocks per problem: 3 per vertex pair slot (one slot per vertex; "barrier": K per vertex
+        #: and 4 per edge pair slot, KE per edge)
+        self.couplings_per_problem = C = 3 * S * K + 4 * E * KE if barrier else 3 * S
+        #: the (vertex, vertex) Hessian blocks of the last assembly outside the block pattern (B C,)
         self.coupling = (
-            wp.zeros(3 * B * S, dtype=wp.int32, device=dev),
-            wp.zeros(3 * B * S, dtype=wp.int32, device=dev),
-            wp.zeros(3 * B * S, dtype=wp.mat33d, device=dev),
+            wp.zeros(B * C, dtype=wp.int32, device=dev),
+            wp.zeros(B * C, dtype=wp.int32, device=dev),
+            wp.zeros(B * C, dtype=wp.mat33d, device=dev),
         )
         self._penetration = wp.zeros(B * S, dtype=wp.float64, device=dev)
+        self._move = wp.zeros(B, dtype=wp.float64, device=dev)
+        self._bound = wp.zeros(B, dtype=wp.float64, device=dev)
+        if barrier:
+            self._check_rest(mesh)
+
+    def _check_rest(self, mesh) -> None:
+        """Model "barrier": refuse a surface that comes within the activation distance d^ of itself at rest
+        (away from the excluded neighbourhoods): its barrier would push it apart before any load, or be
+        infinite where it touches or intersects itself."""
+        x = np.tile(mesh.points, (self.batch_size, 1))
+        self.update_pairs(wp.array(x, dtype=wp.vec3d, device=self.device))
+        sc = self.arrays
+        S, K, E, KE = self.num_surface, sc.candidates, self.num_edges, sc.edge_candidates
+        pair = sc.pair.numpy()[: S * K].reshape(S, K)
+        dist = np.where(pair >= 0, sc.pair_distance.numpy()[: S * K].reshape(S, K), np.inf)
+        edge_pair = sc.edge_pair.numpy()[: E * KE].reshape(E, KE)
+        edge_dist = np.where(edge_pair >= 0, sc.edge_pair_distance.numpy()[: E * KE].reshape(E, KE), np.inf)
+        surface, faces = mesh.surface_vertices, mesh.surface_faces
+        edges = surface[sc.edges.numpy()]
+        if dist.size and dist.min() < self.gap:
+            s, k = np.unravel_index(np.argmin(dist), dist.shape)
+            raise ValueError(
+                f"self-contact barrier: at rest surface vertex {surface[s]} lies {dist[s, k]:.3g} m from "
+                f"surface triangle {faces[pair[s, k]].tolist()}, within the activation distance "
+                f"{self.gap:.3g} m ({SELF_CONTACT_GAP} h): the surface (nearly) touches itself; separate "
+                "those parts of the mesh or use self_contact_model 'prism'"
+            )
+        if edge_dist.size and edge_dist.min() < self.gap:
+            e, k = np.unravel_index(np.argmin(edge_dist), edge_dist.shape)
+            raise ValueError(
+                f"self-contact barrier: at rest surface edges {edges[e].tolist()} and "
+                f"{edges[edge_pair[e, k]].tolist()} lie {edge_dist[e, k]:.3g} m apart, within the activation "
+                f"distance {self.gap:.3g} m ({SELF_CONTACT_GAP} h): the surface (nearly) touches itself"
+            )
 
     def update_pairs(self, positions) -> None:
-        """Refit the BVHs to ``positions`` (B N, one state per problem) and pair every surface vertex."""
+        """Refit the BVHs to ``positions`` (B N, one state per problem) and pair every surface vertex (and
+        with model "barrier" every surface edge)."""
         B, dev, sc = self.batch_size, self.device, self.arrays
         wp.launch(
             surface_points_kernel, dim=B * sc.num_vertices, inputs=[positions, self._points], device=dev
         )
         for m in self._meshes:
             m.refit()
-        wp.launch(
-            pair_kernel,
-            dim=(B, self.num_surface),
-            inputs=[positions, self._mesh_ids, float(self.radius), sc],
-            device=dev,
-        )
+        inputs = [positions, self._mesh_ids, float(self.radius), sc]
+        if self.barrier:
+            wp.launch(barrier_pair_kernel, dim=(B, self.num_surface), inputs=inputs, device=dev)
+            wp.launch(edge_pair_kernel, dim=(B, self.num_edges), inputs=inputs, device=dev)
+        else:
+            wp.launch(pair_kernel, dim=(B, self.num_surface), inputs=inputs, device=dev)
 
     def add_energy(self, positions, states: int, youngs, kappa, smoothing, active, energy) -> None:
         """energy[p] += the penalty of each of the ``states`` packed states (trial-major) with the pairs."""
+        if self.barrier:
+            inputs = [positions, self.arrays, youngs, float(kappa), active, energy]
+            wp.launch(
+                barrier_energy_kernel, dim=(states, self.num_surface), inputs=inputs, device=self.device
+            )
+            wp.launch(
+                edge_barrier_energy_kernel, dim=(states, self.num_edges), inputs=inputs, device=self.device
+            )
+            return
         wp.launch(
             self_contact_energy_kernel,
             dim=(states, self.num_surface),
@@ -581,6 +1247,26 @@ class SelfContact:
         :attr:`coupling` (rows, cols, blocks; see ``BatchedSystem.coupling``)."""
         for a in self.coupling:
             a.zero_()
+        if self.barrier:
+            inputs = [positions, self.arrays, youngs, float(kappa), rows, blocks, self.couplings_per_problem]
+            inputs += [active, free]
+            outputs = [gradient, hessian, *self.coupling]
+            dev = self.device
+            wp.launch(
+                barrier_gradient_hessian_kernel,
+                dim=(self.batch_size, self.num_surface),
+                inputs=inputs,
+                outputs=outputs,
+                device=dev,
+            )
+            wp.launch(
+                edge_barrier_gradient_hessian_kernel,
+                dim=(self.batch_size, self.num_edges),
+                inputs=inputs,
+                outputs=outputs,
+                device=dev,
+            )
+            return
         wp.launch(
             self_contact_gradient_hessian_kernel,
             dim=(self.batch_size, self.num_surface),
@@ -599,17 +1285,58 @@ class SelfContact:
             device=self.device,
         )
 
+    def step_bound(self, positions, direction, rows_per_problem: int, active) -> np.ndarray:
+        """Model "barrier": (B,) the step length along ``direction`` (B R rows, the object's vertices first)
+        from ``positions`` up to which no pair's distance can close by more than
+        ``SELF_CONTACT_STEP_FRACTION`` of itself (with the pairs of the last :meth:`update_pairs`, which must
+        be at ``positions``): the line search stays below it, so no pair passes through zero between two
+        trial states (no tunnelling). inf where nothing moves."""
+        B, dev, sc = self.batch_size, self.device, self.arrays
+        self._move.zero_()
+        self._bound.fill_(np.inf)
+        wp.launch(
+            surface_move_kernel,
+            dim=(B, self.num_surface),
+            inputs=[direction, rows_per_problem, sc, active, self._move],
+            device=dev,
+        )
+        inputs = [positions, direction, rows_per_problem, sc, SELF_CONTACT_STEP_FRACTION, self._move, active]
+        wp.launch(
+            vertex_step_bound_kernel, dim=(B, self.num_surface), inputs=[*inputs, self._bound], device=dev
+        )
+        wp.launch(edge_step_bound_kernel, dim=(B, self.num_edges), inputs=[*inputs, self._bound], device=dev)
+        return self._bound.numpy().copy()
+
     def _evaluate(self, positions, youngs, kappa, smoothing) -> None:
-        """Pairs at ``positions``, then every vertex's self-contact force and penetration (on the device)."""
+        """Pairs at ``positions``, then every vertex's self-contact force and penetration (on the device;
+        "barrier": no penetration, 0)."""
         self.update_pairs(positions)
         self._force.zero_()
         self._penetration.zero_()
+        B, dev = self.batch_size, self.device
+        if self.barrier:
+            inputs = [positions, self.arrays, youngs, float(kappa)]
+            wp.launch(
+                barrier_force_kernel,
+                dim=(B, self.num_surface),
+                inputs=inputs,
+                outputs=[self._force],
+                device=dev,
+            )
+            wp.launch(
+                edge_barrier_force_kernel,
+                dim=(B, self.num_edges),
+                inputs=inputs,
+                outputs=[self._force],
+                device=dev,
+            )
+            return
         wp.launch(
             self_contact_force_kernel,
-            dim=(self.batch_size, self.num_surface),
+            dim=(B, self.num_surface),
             inputs=[positions, self.arrays, youngs, float(kappa), float(smoothing)],
             outputs=[self._force, self._penetration],
-            device=self.device,
+            device=dev,
         )
 
     def penetration(self, positions, youngs, kappa, smoothing) -> np.ndarray:

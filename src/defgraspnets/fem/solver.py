@@ -399,7 +399,13 @@ class SolverOptions:
             point lies on (continuous across triangle boundaries: a vertex in the wedge behind a concave
             crease is held at its distance from the crease, where "prism" lets it go). Measured worse
             than "prism" on the data path's folding and collapsing objects (benchmarks/
-            fem_self_contact_cpu.md, session 43): an option, not the default.
+            fem_self_contact_cpu.md, session 43): an option, not the default. "barrier": IPC's log
+            barrier on the unsigned distances of every near vertex-triangle and edge-edge pair (activation
+            distance ``SELF_CONTACT_GAP`` = 0.05 h), the line search bounded so that no pair's distance
+            reaches zero: continuous everywhere, never penetrating (parts meet 0.05 h early); the thin
+            ring's squeeze 5.1 -> 13.5 N and 7.8 -> 15 N on the CPU, at 2.6-4.6x the time per ramp
+            (``benchmarks/fem_self_contact_barrier_cpu_s50.md``). Refuses a surface within 0.05 h of
+            itself at rest.
     """
 
     contact_stiffness: float = 1000.0
@@ -3126,6 +3132,11 @@ class QuasiStaticSolver:
         slope_np, vmax, dmax = stats.numpy()
         biggest = np.maximum(vmax, dmax)
         alpha = np.where(working, np.minimum(1.0, max_step / np.maximum(biggest, 1e-300)), 0.0)
+        sc = self._self_contact
+        if sc is not None and sc.barrier and working.any():
+            # no pair of the self-contact barrier passes through zero distance between trial states
+            bound = sc.step_bound(self._positions, sysm.increment, R, self._active_array(working))
+            alpha = np.minimum(alpha, bound)
         first_trial = alpha.copy()
         result = np.zeros(B, dtype=int)
         searching = working.copy()
@@ -3195,16 +3206,26 @@ class QuasiStaticSolver:
         than :data:`PREDICTED_SELF_PENETRATION` of the self-contact depth: the extrapolation runs the object
         through itself towards where its pairs stop holding (there the penalty's candidates drop and Newton
         stalls: a thin ring squeezed flat, its inner walls about to meet,
-        ``benchmarks/fem_self_contact_predictor_cpu_s49.md``)."""
+        ``benchmarks/fem_self_contact_predictor_cpu_s49.md``). With the "barrier" model the straight path
+        from the last converged state to the predicted one is checked instead (the line search's step
+        bound): a prediction that would carry a pair through zero distance falls back."""
         self._predict(change, mask)
         self._apply_increment(lam, start, end, mask)
         fallback = np.zeros(self.batch_size, dtype=bool)
         if self._barrier:
             energy = self._energy_at(self._q, self._positions, self._travel, self._active_array(mask))
             fallback |= mask & ~np.isfinite(energy)
-        if self._self_contact is not None:  # the predicted state's penetrations (its forces are not needed)
+        sc = self._self_contact
+        if sc is not None and sc.barrier:
+            # model "barrier": the straight path from the last converged state to the predicted one must not
+            # run a pair through zero distance (its energy is finite again beyond: tunnelling)
+            m = self._active_array(mask)
+            sc.update_pairs(self._positions_ref)
+            self._difference_rows(self._q, self._q_ref, m, self._q_trial)  # the path (scratch rows)
+            bound = sc.step_bound(self._positions_ref, self._q_trial, self.rows_per_problem, m)
+            fallback |= mask & (bound < 1.0)
+        elif sc is not None:  # the predicted state's penetrations (its forces are not needed)
             self._unpack(self._q, self._positions, self._travel)
-            sc = self._self_contact
             penetration = sc.penetration(self._positions, self._youngs, *self._self_contact_law())
             deep = penetration.max(axis=1) > PREDICTED_SELF_PENETRATION * sc.depth
             fallback |= mask & deep

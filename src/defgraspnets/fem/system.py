@@ -368,6 +368,8 @@ class BatchedSystem:
                 A = sp.bsr_matrix((values[p], cols, offsets), shape=(n, n)).tocsc()
                 if coupling is not None:
                     r, c, v = coupling[0][p], coupling[1][p], coupling[2][p]
+                    nonzero = v != 0  # the empty pair slots' zero entries (most of them) add nothing
+                    r, c, v = r[nonzero], c[nonzero], v[nonzero]
                     A = A + sp.coo_matrix((np.r_[v, v], (np.r_[r, c], np.r_[c, r])), shape=(n, n)).tocsc()
                 self._direct_factors[p] = spla.splu(
                     A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.01, options={"SymmetricMode": True}
