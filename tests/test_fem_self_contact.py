@@ -944,3 +944,23 @@ def test_barrier_increment_does_not_start_from_a_prediction_through_the_surface(
     mesh = coarse.mesh
     assert mesh.surface_vertices_inside(mesh.points + coarse.displacement[0]).size == 0
     np.testing.assert_allclose(coarse.displacement, fine.displacement, rtol=0, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_barrier_carries_the_thin_ring_squeezed_flat():
+    """The thin ring (annulus_ro30_ri25_h50, 953 fTetWild vertices, 100 kPa) squeezed 0-15 N in 50 steps by
+    grasp 24 of the data path's grasps: with the barrier every step converges, and no surface vertex is ever
+    inside the object (the prism model also reaches 15 N here, with 6 vertices inside;
+    ``benchmarks/fem_self_contact_barrier_s50.md``: ~40 s on the 2-core CPU)."""
+    from defgraspnets.grasp.sampler import sample_antipodal_grasps
+    from defgraspnets.grasp.squeeze import make_squeeze_solver, squeeze_ramp, squeeze_solver_options
+
+    mesh = fem.TetMesh.load(Path(__file__).parent / "data" / "annulus_ro30_ri25_h50_ftetwild.vtu")
+    grasps = sample_antipodal_grasps(mesh, 100, friction_coefficient=0.7, rotations_per_axis=4, seed=0)
+    options = squeeze_solver_options(linear_solver="direct", self_contact=1.0, self_contact_model="barrier")
+    material = fem.Material(1e5, 0.3, 1000.0, model="neohookean")
+    solver = make_squeeze_solver(mesh, grasps[[24]], material, 0.7, device="cpu", options=options)
+    steps = squeeze_ramp(solver, 15.0, 50)
+    assert [int(e.status[0]) for e in steps] == [0] * 50
+    for e in steps:
+        assert mesh.surface_vertices_inside(mesh.points + e.displacement[0]).size == 0

@@ -91,11 +91,14 @@ the vertex's (edge's) clear radius (all nearer ones are candidates), by more tha
 (``QuasiStaticSolver._start_increment``). Not IPC: no adaptive barrier stiffness (kappa is the rigid
 contact's), no mollifier for near-parallel edges (their pair's distance is continuous, its gradient may
 jump), no friction, and duplicate pairs (a vertex near an edge has both triangles' pairs, and the edge pairs
-through it) are summed, not merged. Pair arrays: K per vertex and ``SELF_CONTACT_EDGE_CANDIDATES`` per edge
-(each edge pair once, from its lower edge), their couplings 3 per vertex slot and 4 per edge slot. Measured
-on the thin ring (``benchmarks/fem_self_contact_barrier_cpu_s50.md``): the squeeze across its diameter 5.1
--> 13.5 N, the one pinching one wall 7.8 -> 15 N (the whole ramp), no surface vertex inside; refuses a
-surface within d^ of itself at rest (away from the excluded neighbourhoods).
+through it) are summed, not merged: two vertices meeting bring every pair of their fans' triangles and
+edges. Pair arrays: ``SELF_CONTACT_BARRIER_CANDIDATES`` per vertex and ``SELF_CONTACT_EDGE_CANDIDATES`` per
+edge (each edge pair once, from its lower edge), their couplings 3 per vertex slot and 4 per edge slot. A
+list that overflows within d^ leaves out acting pairs, and which ones can change between Newton
+iterations (with 4 edge slots the ring's grasp 24 cycled on this: measured). Measured
+on the thin ring (``benchmarks/fem_self_contact_barrier_s50.md``): four grasps squeezed 0-15 N all reach 15
+N ("prism": two, 5.1 and 7.8 N), no surface vertex inside, ~1.8x the prism's time per Newton iteration on
+the CPU; refuses a surface within d^ of itself at rest (away from the excluded neighbourhoods).
 
 Candidates. Once per Newton iteration (at assembly, from the deformed state) each surface vertex gets up to
 ``SELF_CONTACT_CANDIDATES`` nearest triangles, kept for that iteration's line search, so the energies
@@ -149,8 +152,12 @@ SELF_CONTACT_EXCLUSION = 2.0
 SELF_CONTACT_MODELS = ("prism", "feature", "barrier")
 #: model "barrier": the distance below which a pair's barrier acts (its activation distance), in units of h
 SELF_CONTACT_GAP = 0.05
-#: model "barrier": candidate edges kept per surface edge (edge-edge pairs)
-SELF_CONTACT_EDGE_CANDIDATES = 4
+#: model "barrier": candidate triangles kept per surface vertex (every one within the activation distance
+#: acts: a vertex against another one's fan, 6-10 triangles at one distance, fits)
+SELF_CONTACT_BARRIER_CANDIDATES = 16
+#: model "barrier": candidate edges kept per surface edge (edge-edge pairs; an edge against a vertex's fan of
+#: edges fits)
+SELF_CONTACT_EDGE_CANDIDATES = 8
 #: model "barrier": a line-search step may close at most this fraction of any pair's distance
 SELF_CONTACT_STEP_FRACTION = 0.9
 
@@ -1132,7 +1139,7 @@ class SelfContact:
         sc.excluded_start = wp.array(start, dtype=wp.int32, device=dev)
         sc.excluded = wp.array(excluded, dtype=wp.int32, device=dev)
         sc.adjacent = wp.array(adjacent_triangles(faces), dtype=wp.int32, device=dev)
-        sc.candidates = K = SELF_CONTACT_CANDIDATES
+        sc.candidates = K = SELF_CONTACT_BARRIER_CANDIDATES if barrier else SELF_CONTACT_CANDIDATES
         sc.pair = wp.full(B * S * K, -1, dtype=wp.int32, device=dev)
         sc.pair_distance = wp.zeros(B * S * K, dtype=wp.float64, device=dev)
         sc.size = float(size)

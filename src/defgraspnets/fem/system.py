@@ -360,16 +360,12 @@ class BatchedSystem:
         residual2 = 0.0
         todo = np.nonzero(np.abs(b_all).max(axis=1) > 0)[0].tolist()
         fresh = set(self._to_factor(todo, self._direct_factors, refactor))
-        coupling = self._coupling_entries() if fresh else None
-        if coupling is not None:
-            coupling = [a.cpu().numpy() for a in coupling]
+        coupling = self._host_coupling_entries() if fresh else None
         for p in todo:
             if p in fresh:
                 A = sp.bsr_matrix((values[p], cols, offsets), shape=(n, n)).tocsc()
                 if coupling is not None:
-                    r, c, v = coupling[0][p], coupling[1][p], coupling[2][p]
-                    nonzero = v != 0  # the empty pair slots' zero entries (most of them) add nothing
-                    r, c, v = r[nonzero], c[nonzero], v[nonzero]
+                    r, c, v = coupling[p]
                     A = A + sp.coo_matrix((np.r_[v, v], (np.r_[r, c], np.r_[c, r])), shape=(n, n)).tocsc()
                 self._direct_factors[p] = spla.splu(
                     A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.01, options={"SymmetricMode": True}
@@ -379,6 +375,25 @@ class BatchedSystem:
                 residual2 += float(np.sum((A @ x[p] - b_all[p]) ** 2))
         self._set_increment(x)
         return 1, float(np.sqrt(residual2))
+
+    def _host_coupling_entries(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]] | None:
+        """Per problem (rows, cols, values) of :attr:`coupling`'s nonzero scalar entries, on the host (the
+        empty pair slots, most of them, are left out before their entries are spelled out), or None."""
+        if self.coupling is None:
+            return None
+        B = self.batch_size
+        rows, cols = (a.numpy().reshape(B, -1) for a in self.coupling[:2])
+        blocks = self.coupling[2].numpy().reshape(B, -1, 3, 3)
+        k = np.arange(3)
+        out = []
+        for p in range(B):
+            live = np.flatnonzero(np.abs(blocks[p]).reshape(len(blocks[p]), 9).max(axis=1) > 0)
+            r = (3 * rows[p, live, None, None] + k[None, :, None]).repeat(3, axis=2)
+            c = (3 * cols[p, live, None, None] + k[None, None, :]).repeat(3, axis=1)
+            v = blocks[p, live]
+            nonzero = v.ravel() != 0
+            out.append((r.ravel()[nonzero], c.ravel()[nonzero], v.ravel()[nonzero]))
+        return out
 
     def _coupling_entries(self):
         """(rows, cols, values) of :attr:`coupling`'s scalar entries per problem ((B, 9 C) each), as
