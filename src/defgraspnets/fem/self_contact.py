@@ -88,17 +88,27 @@ Newton step is cut to the length at which no candidate pair's distance can have 
 vertices per unit step, translation-invariant, as in additive CCD), nor any other pair, which lies beyond
 the vertex's (edge's) clear radius (all nearer ones are candidates), by more than that fraction of it
 (:meth:`SelfContact.step_bound`); the predictor's extrapolation is checked the same way
-(``QuasiStaticSolver._start_increment``). Not IPC: no adaptive barrier stiffness (kappa is the rigid
-contact's), no mollifier for near-parallel edges (their pair's distance is continuous, its gradient may
-jump), no friction, and duplicate pairs (a vertex near an edge has both triangles' pairs, and the edge pairs
-through it) are summed, not merged: two vertices meeting bring every pair of their fans' triangles and
-edges. Pair arrays: ``SELF_CONTACT_BARRIER_CANDIDATES`` per vertex and ``SELF_CONTACT_EDGE_CANDIDATES`` per
-edge (each edge pair once, from its lower edge), their couplings 3 per vertex slot and 4 per edge slot. A
-list that overflows within d^ leaves out acting pairs, and which ones can change between Newton
-iterations (with 4 edge slots the ring's grasp 24 cycled on this: measured). Measured
-on the thin ring (``benchmarks/fem_self_contact_barrier_s50.md``): four grasps squeezed 0-15 N all reach 15
-N ("prism": two, 5.1 and 7.8 N), no surface vertex inside, ~1.8x the prism's time per Newton iteration on
-the CPU; refuses a surface within d^ of itself at rest (away from the excluded neighbourhoods).
+(``QuasiStaticSolver._start_increment``). Edge pairs closer to parallel than |e x g|^2 < eps l_e^2 l_g^2
+(eps = ``SELF_CONTACT_PARALLEL``) are faded out by IPC's mollifier m = x (2 - x), x = |e x g|^2 / (eps
+l_e^2 l_g^2) (their closest points jump along the edges; the vertex pairs of their ends hold them): the
+energy is m k b(d), its gradient exact (m's too). Hessian per pair: c c^T (x) (k b'' n n^T + (f / d) P)
+with c the pair's coefficients and P the directions in which the distance to the closest feature curves
+(none for a face or two crossing edges, those normal to n and to the edge for an edge, all normal to n for
+a point: exact for two points, the closest point's weights held otherwise; the mollifier's second
+derivatives left out); PSD. That Hessian still jumps where a closest point moves between a face, an edge
+and a corner, and full Newton steps can overshoot back and forth across such a boundary: with this model
+the line search shortens an accepted full step to the minimum of the parabola through the energy, its slope
+and the full step's energy where that lies below 0.8 of the step (``QuasiStaticSolver._refine_full_steps``).
+Not IPC: no adaptive barrier stiffness (kappa is the rigid contact's), no friction, and duplicate pairs (a
+vertex near an edge has both triangles' pairs, and the edge pairs through it) are summed, not merged: two
+vertices meeting bring every pair of their fans' triangles and edges. Pair arrays:
+``SELF_CONTACT_BARRIER_CANDIDATES`` per vertex and ``SELF_CONTACT_EDGE_CANDIDATES`` per edge (each edge pair
+once, from its lower edge), their couplings 3 per vertex slot and 4 per edge slot. A list that overflows
+within d^ leaves out acting pairs, and which ones can change between Newton iterations (with 4 edge slots
+the ring's grasp 24 cycled on this: measured). Measured on the thin ring
+(``benchmarks/fem_self_contact_barrier_s50.md``): the squeeze ramps that the prism model fails reach 15 N,
+with no surface vertex inside; refuses a surface within d^ of itself at rest (away from the excluded
+neighbourhoods).
 
 Candidates. Once per Newton iteration (at assembly, from the deformed state) each surface vertex gets up to
 ``SELF_CONTACT_CANDIDATES`` nearest triangles, kept for that iteration's line search, so the energies
@@ -158,6 +168,9 @@ SELF_CONTACT_BARRIER_CANDIDATES = 16
 #: model "barrier": candidate edges kept per surface edge (edge-edge pairs; an edge against a vertex's fan of
 #: edges fits)
 SELF_CONTACT_EDGE_CANDIDATES = 8
+#: model "barrier": edge pairs closer to parallel than |e x g|^2 < this l_e^2 l_g^2 (rest lengths) are faded
+#: out by IPC's mollifier (their closest points jump along the edges; their ends' vertex pairs hold them)
+SELF_CONTACT_PARALLEL = 1e-3
 #: model "barrier": a line-search step may close at most this fraction of any pair's distance
 SELF_CONTACT_STEP_FRACTION = 0.9
 
@@ -235,6 +248,7 @@ class SelfContactArrays:
     edge_pair_distance: wp.array(dtype=wp.float64)  # (B E KE,) their distances at the pairing
     edge_clear: wp.array(dtype=wp.float64)  # (B E,) as ``clear``, for the edges
     edge_candidates: int  # KE
+    parallel: f64  # SELF_CONTACT_PARALLEL
 
 
 @wp.func
@@ -598,6 +612,29 @@ def edge_pair_stiffness(sc: SelfContactArrays, kappa: f64, youngs: f64, e: int, 
 
 
 @wp.func
+def edge_mollifier(sc: SelfContactArrays, positions: wp.array(dtype=wp.vec3d), o: int, e: int, g: int):
+    """IPC's mollifier of edge pair (e, g): m = x (2 - x) with x = |a x b|^2 / (eps l_e^2 l_g^2) below 1,
+    else 1 (a, b the edges' vectors, l their rest lengths, eps ``SELF_CONTACT_PARALLEL``), and its
+    gradients with respect to a and b (the ends: -/+ them)."""
+    ea = sc.edges[e]
+    eb = sc.edges[g]
+    a = positions[o + sc.surface[ea[1]]] - positions[o + sc.surface[ea[0]]]
+    b = positions[o + sc.surface[eb[1]]] - positions[o + sc.surface[eb[0]]]
+    la = sc.edge_length[e]
+    lb = sc.edge_length[g]
+    threshold = sc.parallel * la * la * lb * lb
+    c = wp.length_sq(wp.cross(a, b))
+    if c >= threshold:
+        return f64(1.0), wp.vec3d(), wp.vec3d()
+    x = c / threshold
+    slope = f64(2.0) * (f64(1.0) - x) / threshold  # dm/dc
+    ab = wp.dot(a, b)
+    dm_da = (slope * f64(2.0)) * (wp.dot(b, b) * a - ab * b)
+    dm_db = (slope * f64(2.0)) * (wp.dot(a, a) * b - ab * a)
+    return x * (f64(2.0) - x), dm_da, dm_db
+
+
+@wp.func
 def keep_nearest(
     pair: wp.array(dtype=wp.int32),
     distance: wp.array(dtype=wp.float64),
@@ -754,7 +791,12 @@ def edge_barrier_energy_kernel(
         g = sc.edge_pair[first + k]
         if g >= 0:
             d, r, st = edge_edge_distance(sc, positions, p * sc.num_vertices, e, g)
-            total += barrier_energy(d, edge_pair_stiffness(sc, kappa, youngs[b], e, g), sc.gap)
+            energy_g = barrier_energy(d, edge_pair_stiffness(sc, kappa, youngs[b], e, g), sc.gap)
+            if d <= f64(0.0):
+                total += energy_g  # +inf, even for parallel edges
+            elif energy_g > f64(0.0):
+                m, dm_da, dm_db = edge_mollifier(sc, positions, p * sc.num_vertices, e, g)
+                total += m * energy_g
     if total > f64(0.0):
         wp.atomic_add(energy, p, total)
 
@@ -767,6 +809,27 @@ def masked_block(c: wp.mat33d, free_a: wp.vec3d, free_b: wp.vec3d) -> wp.mat33d:
         for j in range(3):
             m[i, j] = free_a[i] * c[i, j] * free_b[j]
     return m
+
+
+@wp.func
+def curvature_projector(n: wp.vec3d, t: wp.vec3d, feature: int) -> wp.mat33d:
+    """Directions in which the distance to the closest feature curves, per unit 1 / d: none for a face
+    (feature 2), those normal to n and to the edge direction t for an edge (1), all normal to n for a point
+    (0)."""
+    identity = wp.identity(n=3, dtype=f64)
+    if feature == 2:
+        return wp.mat33d()
+    if feature == 1:
+        return identity - wp.outer(n, n) - wp.outer(t, t)
+    return identity - wp.outer(n, n)
+
+
+@wp.func
+def pair_hessian(d: f64, n: wp.vec3d, fn: f64, kg: f64, t: wp.vec3d, feature: int) -> wp.mat33d:
+    """The 3 x 3 factor M of a pair's Hessian c c^T (x) M (c its coefficients): k b'' n n^T along the normal
+    and the distance's own curvature, f_n / d times :func:`curvature_projector` (exact for two points; for a
+    point and an edge with the edge's direction held), both PSD."""
+    return kg * wp.outer(n, n) + (fn / d) * curvature_projector(n, t, feature)
 
 
 @wp.kernel
@@ -808,10 +871,18 @@ def barrier_gradient_hessian_kernel(
             if d > f64(0.0) and d < sc.gap:
                 n = r / d
                 fn = barrier_force(d, kn, sc.gap)
-                nn = barrier_stiffness(d, kn, sc.gap) * wp.outer(n, n)
+                ids = sc.faces[f]
+                # the closest feature: the face (no weight 0), an edge (one: t along it) or a corner (two)
+                feature = int(0)  # noqa: UP018
+                t = wp.vec3d()
+                for i in range(3):
+                    if w[i] > f64(0.0):
+                        feature += 1
+                    elif w[(i + 1) % 3] > f64(0.0) and w[(i + 2) % 3] > f64(0.0):
+                        t = wp.normalize(positions[o + ids[(i + 2) % 3]] - positions[o + ids[(i + 1) % 3]])
+                nn = pair_hessian(d, n, fn, barrier_stiffness(d, kn, sc.gap), t, feature - 1)
                 wp.atomic_add(gradient, row + v, -fn * n)
                 wp.atomic_add(hessian, ob + sc.vertex_block[s], nn)
-                ids = sc.faces[f]
                 slot = b * couplings_per_problem + 3 * (s * K + k)
                 for i in range(3):
                     wp.atomic_add(gradient, row + ids[i], (w[i] * fn) * n)
@@ -860,9 +931,30 @@ def edge_barrier_gradient_hessian_kernel(
             if d > f64(0.0) and d < sc.gap:
                 kn = edge_pair_stiffness(sc, kappa, youngs[b], e, g)
                 n = r / d
-                fn = barrier_force(d, kn, sc.gap)
-                nn = barrier_stiffness(d, kn, sc.gap) * wp.outer(n, n)
+                m, dm_da, dm_db = edge_mollifier(sc, positions, o, e, g)
+                fn = m * barrier_force(d, kn, sc.gap)
+                energy_g = barrier_energy(d, kn, sc.gap)
                 eb = sc.edges[g]
+                # the mollifier's gradient: d(m E_g) = m dE_g + E_g dm (its Hessian terms are left out)
+                wp.atomic_add(gradient, row + sc.surface[ea[1]], energy_g * dm_da)
+                wp.atomic_add(gradient, row + sc.surface[ea[0]], -energy_g * dm_da)
+                wp.atomic_add(gradient, row + sc.surface[eb[1]], energy_g * dm_db)
+                wp.atomic_add(gradient, row + sc.surface[eb[0]], -energy_g * dm_db)
+                # closest points: two interior ones (crossing lines: no curvature held), an end against the
+                # other edge's interior (t along that edge) or two ends
+                a_end = st[0] <= f64(0.0) or st[0] >= f64(1.0)
+                b_end = st[1] <= f64(0.0) or st[1] >= f64(1.0)
+                feature = int(2)  # noqa: UP018
+                t = wp.vec3d()
+                if a_end and b_end:
+                    feature = 0
+                elif a_end:
+                    feature = 1
+                    t = wp.normalize(positions[o + sc.surface[eb[1]]] - positions[o + sc.surface[eb[0]]])
+                elif b_end:
+                    feature = 1
+                    t = wp.normalize(positions[o + sc.surface[ea[1]]] - positions[o + sc.surface[ea[0]]])
+                nn = pair_hessian(d, n, fn, m * barrier_stiffness(d, kn, sc.gap), t, feature)
                 ca = wp.vec2d(f64(1.0) - st[0], st[0])
                 cb = wp.vec2d(-(f64(1.0) - st[1]), -st[1])
                 slot = b * couplings_per_problem + 3 * S * sc.candidates + 4 * (e * K + k)
@@ -925,8 +1017,15 @@ def edge_barrier_force_kernel(
         if g >= 0:
             d, r, st = edge_edge_distance(sc, positions, o, e, g)
             if d > f64(0.0) and d < sc.gap:
-                fn = barrier_force(d, edge_pair_stiffness(sc, kappa, youngs[b], e, g), sc.gap) / d
+                kn = edge_pair_stiffness(sc, kappa, youngs[b], e, g)
+                m, dm_da, dm_db = edge_mollifier(sc, positions, o, e, g)
+                fn = m * barrier_force(d, kn, sc.gap) / d
+                energy_g = barrier_energy(d, kn, sc.gap)
                 eb = sc.edges[g]
+                wp.atomic_add(force, o + sc.surface[ea[1]], -energy_g * dm_da)
+                wp.atomic_add(force, o + sc.surface[ea[0]], energy_g * dm_da)
+                wp.atomic_add(force, o + sc.surface[eb[1]], -energy_g * dm_db)
+                wp.atomic_add(force, o + sc.surface[eb[0]], energy_g * dm_db)
                 wp.atomic_add(force, o + sc.surface[ea[0]], ((f64(1.0) - st[0]) * fn) * r)
                 wp.atomic_add(force, o + sc.surface[ea[1]], (st[0] * fn) * r)
                 wp.atomic_add(force, o + sc.surface[eb[0]], (-(f64(1.0) - st[1]) * fn) * r)
@@ -1157,6 +1256,7 @@ class SelfContact:
         sc.face_edges = wp.array(face_edges.astype(np.int32), dtype=wp.int32, device=dev)
         sc.edge_owner = wp.array(owner.astype(np.int32), dtype=wp.int32, device=dev)
         sc.edge_candidates = KE = SELF_CONTACT_EDGE_CANDIDATES
+        sc.parallel = SELF_CONTACT_PARALLEL
         per = (lambda n: n) if barrier else (lambda n: 1)  # noqa: E731 (the pair arrays of "barrier" only)
         sc.clear = wp.zeros(per(B * S), dtype=wp.float64, device=dev)
         sc.edge_pair = wp.full(per(B * E * KE), -1, dtype=wp.int32, device=dev)

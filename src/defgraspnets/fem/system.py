@@ -360,7 +360,7 @@ class BatchedSystem:
         residual2 = 0.0
         todo = np.nonzero(np.abs(b_all).max(axis=1) > 0)[0].tolist()
         fresh = set(self._to_factor(todo, self._direct_factors, refactor))
-        coupling = self._host_coupling_entries() if fresh else None
+        coupling = self._host_coupling_entries(fresh) if fresh else None
         for p in todo:
             if p in fresh:
                 A = sp.bsr_matrix((values[p], cols, offsets), shape=(n, n)).tocsc()
@@ -376,23 +376,24 @@ class BatchedSystem:
         self._set_increment(x)
         return 1, float(np.sqrt(residual2))
 
-    def _host_coupling_entries(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]] | None:
-        """Per problem (rows, cols, values) of :attr:`coupling`'s nonzero scalar entries, on the host (the
-        empty pair slots, most of them, are left out before their entries are spelled out), or None."""
+    def _host_coupling_entries(self, problems) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] | None:
+        """Per problem of ``problems``, (rows, cols, values) of :attr:`coupling`'s nonzero scalar entries on
+        the host (the empty pair slots, most of them, are left out before their entries are spelled out),
+        or None without couplings."""
         if self.coupling is None:
             return None
         B = self.batch_size
         rows, cols = (a.numpy().reshape(B, -1) for a in self.coupling[:2])
         blocks = self.coupling[2].numpy().reshape(B, -1, 3, 3)
         k = np.arange(3)
-        out = []
-        for p in range(B):
+        out = {}
+        for p in problems:
             live = np.flatnonzero(np.abs(blocks[p]).reshape(len(blocks[p]), 9).max(axis=1) > 0)
             r = (3 * rows[p, live, None, None] + k[None, :, None]).repeat(3, axis=2)
             c = (3 * cols[p, live, None, None] + k[None, None, :]).repeat(3, axis=1)
             v = blocks[p, live]
             nonzero = v.ravel() != 0
-            out.append((r.ravel()[nonzero], c.ravel()[nonzero], v.ravel()[nonzero]))
+            out[p] = (r.ravel()[nonzero], c.ravel()[nonzero], v.ravel()[nonzero])
         return out
 
     def _coupling_entries(self):
