@@ -1013,3 +1013,17 @@ def test_barrier_line_search_shortens_full_steps_that_overshoot(monkeypatch):
     plain, _, _ = pressed_blocks(1.0, 1e-3, self_contact_model="barrier")
     assert plain.status[0] != fem.SolveStatus.CONVERGED
     assert int(plain.newton_iterations[0]) > 10 * int(exact.newton_iterations[0])
+
+
+@pytest.mark.parametrize("trials", [1, 4])
+def test_barrier_line_search_with_nothing_to_search(trials):
+    """A line search in which no problem searches (none working, or every direction uphill) leaves the state
+    as it is, with several trial states per pass (CUDA's default) too: no energy was evaluated, nothing to
+    refine (a crash on the H200 before this test)."""
+    solver, _, _ = blocks_solver(1.0, self_contact_model="barrier", line_search_trials=trials)
+    before = solver._q.numpy().copy()
+    for working in (np.zeros(1, dtype=bool), np.ones(1, dtype=bool)):
+        solver.system.increment.zero_()  # a zero step: no descent
+        failed, first, alpha = solver._line_search(working, 1.0)
+        assert alpha[0] == 0.0 and failed[0] == int(working[0])
+    np.testing.assert_array_equal(solver._q.numpy(), before)

@@ -3190,7 +3190,7 @@ class QuasiStaticSolver:
             halvings += n
         result[searching] = 1
         alpha[~accepted] = 0.0
-        if sc is not None and sc.barrier:
+        if sc is not None and sc.barrier and e0 is not None and accepted.any():
             self._refine_full_steps(accepted & (alpha >= first_trial), alpha, e0, e_accepted, slope_np)
         self._step.assign(alpha)
         # q += alpha dq in place (each row reads and writes only itself)
