@@ -403,8 +403,8 @@ class SolverOptions:
             barrier on the unsigned distances of every near vertex-triangle and edge-edge pair (activation
             distance ``SELF_CONTACT_GAP`` = 0.05 h), the line search bounded so that no pair's distance
             reaches zero: continuous everywhere, never penetrating (parts meet 0.05 h early); the thin
-            ring's four CPU ramps all reach 15 N ("prism": two), at ~1.8x the time per Newton iteration
-            (``benchmarks/fem_self_contact_barrier_s50.md``). Refuses a surface within 0.05 h of
+            ring's four CPU ramps all reach 15 N ("prism": two), at ~1.5-1.8x the time per Newton
+            iteration (``benchmarks/fem_self_contact_barrier_s50.md``). Refuses a surface within 0.05 h of
             itself at rest.
     """
 
