@@ -283,6 +283,16 @@ def test_a_pressed_block_passes_through_the_other_without_and_rests_on_it_with_s
     np.testing.assert_allclose(dense.displacement, on.displacement, atol=1e-9)
 
 
+def press_path(presses, **options) -> fem.Equilibrium:
+    """The blocks pressed by each of ``presses`` [m] in turn (one solve each, every one converged): the
+    last equilibrium."""
+    solver, pressed, _ = blocks_solver(1.0, **options)
+    for press in presses:
+        eq = solver.solve(prescribed_displacement=pressed(press))
+        eq.require_converged()
+    return eq
+
+
 def test_an_increment_does_not_start_from_a_prediction_that_runs_the_object_through_itself(monkeypatch):
     """The upper block pressed 0.45 mm (0.05 mm short of touching), then 1.35 mm: the predictor would
     extrapolate the first press twice over, 0.85 mm into the lower block, deeper than
@@ -294,19 +304,12 @@ def test_an_increment_does_not_start_from_a_prediction_that_runs_the_object_thro
 
     assert solver_module.PREDICTED_SELF_PENETRATION == 0.5
 
-    def path(presses) -> fem.Equilibrium:
-        solver, pressed, _ = blocks_solver(1.0)
-        assert solver._self_contact.depth == pytest.approx(1.25e-3)
-        for press in presses:
-            eq = solver.solve(prescribed_displacement=pressed(press))
-            eq.require_converged()
-        return eq
-
-    fine = path(np.linspace(0.45e-3, 1.35e-3, 10))
-    guarded = path([0.45e-3, 1.35e-3])
+    assert blocks_solver(1.0)[0]._self_contact.depth == pytest.approx(1.25e-3)
+    fine = press_path(np.linspace(0.45e-3, 1.35e-3, 10))
+    guarded = press_path([0.45e-3, 1.35e-3])
     np.testing.assert_allclose(guarded.displacement, fine.displacement, rtol=0, atol=1e-9)
     monkeypatch.setattr(solver_module, "PREDICTED_SELF_PENETRATION", np.inf)
-    unguarded = path([0.45e-3, 1.35e-3])
+    unguarded = press_path([0.45e-3, 1.35e-3])
     assert np.abs(unguarded.displacement - fine.displacement).max() > 1e-4  # measured 3.6e-4 m
 
 
@@ -947,23 +950,21 @@ def test_barrier_pressed_blocks_stay_apart_and_balance():
         np.testing.assert_allclose(other.displacement, on.displacement, atol=1e-9)
 
 
-def test_barrier_increment_does_not_start_from_a_prediction_through_the_surface():
-    """The upper block pressed 0.2 mm, then 1.35 mm: the predictor's extrapolation would carry it through
-    the lower block; its path is checked with the step bound and the increment starts from the last
-    converged state instead. The press ends where a fine path of 0.1 mm presses ends."""
-
-    def path(presses) -> fem.Equilibrium:
-        solver, pressed, _ = blocks_solver(1.0, self_contact_model="barrier")
-        for press in presses:
-            eq = solver.solve(prescribed_displacement=pressed(press))
-            eq.require_converged()
-        return eq
-
-    fine = path(np.linspace(0.2e-3, 1.35e-3, 12))
-    coarse = path([0.2e-3, 1.35e-3])
+def test_barrier_increment_does_not_start_from_a_prediction_through_the_surface(monkeypatch):
+    """The upper block pressed 0.2 mm, then 1.35 mm: the predictor's extrapolation (twice the first press)
+    would carry it 0.1 mm into the lower block; its path is checked with the step bound and the increment
+    starts from the last converged state instead. The press ends where a fine path of 0.1 mm presses ends,
+    nothing inside; without the step bounds (line search and predictor) it ends elsewhere."""
+    fine = press_path(np.linspace(0.2e-3, 1.35e-3, 12), self_contact_model="barrier")
+    coarse = press_path([0.2e-3, 1.35e-3], self_contact_model="barrier")
     mesh = coarse.mesh
     assert mesh.surface_vertices_inside(mesh.points + coarse.displacement[0]).size == 0
     np.testing.assert_allclose(coarse.displacement, fine.displacement, rtol=0, atol=1e-9)
+    # measured: converged with 32 surface vertices inside the other block, 0.72 mm from the fine path's end
+    monkeypatch.setattr(sk.SelfContact, "step_bound", lambda self, *a: np.full(self.batch_size, np.inf))
+    unbounded = press_path([0.2e-3, 1.35e-3], self_contact_model="barrier")
+    assert mesh.surface_vertices_inside(mesh.points + unbounded.displacement[0]).size > 10
+    assert np.abs(unbounded.displacement - fine.displacement).max() > 1e-4
 
 
 @pytest.mark.slow
