@@ -64,6 +64,18 @@ def pressed_blocks(self_contact: float, press: float, device: str = "cpu", **opt
     return eq, solver, n
 
 
+def assert_blocks_balance(eq: fem.Equilibrium, force: np.ndarray, n: int) -> np.ndarray:
+    """The pressed blocks' self-contact forces ``force`` (B, N, 3) are internal (sum to zero), carry a real
+    load (a strain of a few %) onto the upper block (vertices from ``n``) and are what the lower block's
+    support reacts: returns the force on the upper block [N]."""
+    pushed = force[0, n:].sum(axis=0)
+    assert pushed[2] > 0.1 * E * SIZE[0] * SIZE[1] * 0.01
+    np.testing.assert_allclose(force[0].sum(axis=0), 0.0, atol=1e-9 * np.abs(force).max())
+    lower_support = eq.reaction_force[0, eq.mesh.points[:, 2] < 1e-9].sum(axis=0)
+    np.testing.assert_allclose(lower_support, pushed, rtol=1e-4, atol=1e-6 * pushed[2])
+    return pushed
+
+
 def test_self_contact_option_is_checked():
     for bad in (-1.0, float("nan"), float("inf"), "yes"):
         with pytest.raises(ValueError, match="self_contact"):
@@ -263,14 +275,9 @@ def test_a_pressed_block_passes_through_the_other_without_and_rests_on_it_with_s
     assert mesh.surface_vertices_inside(x).size > 0  # the penalty's penetration, strictly inside
     assert mesh.surface_vertices_inside(x, depth=depth).size == 0
     force, pen = solver.self_contact_forces()
-    z = mesh.points[:, 2]
-    lower_support = on.reaction_force[0, z < 1e-9].sum(axis=0)
-    upper_support = on.reaction_force[0, z > 2 * SIZE[2] + GAP - 1e-9].sum(axis=0)
-    pushed = force[0, n:].sum(axis=0)  # self-contact force on the upper block
-    assert pushed[2] > 0.1 * E * SIZE[0] * SIZE[1] * 0.01  # a real load (strain of a few %)
-    np.testing.assert_allclose(force[0].sum(axis=0), 0.0, atol=1e-9 * np.abs(force).max())
+    pushed = assert_blocks_balance(on, force, n)
+    upper_support = on.reaction_force[0, mesh.points[:, 2] > 2 * SIZE[2] + GAP - 1e-9].sum(axis=0)
     np.testing.assert_allclose(upper_support, -pushed, rtol=1e-4, atol=1e-6 * pushed[2])
-    np.testing.assert_allclose(lower_support, pushed, rtol=1e-4, atol=1e-6 * pushed[2])
     # penetration tolerance: p h / (kappa E) + zeta h / 2 with the mean pressure p (and a margin for the
     # uneven pressure of the pressed faces)
     h = solver.contact_length
@@ -650,12 +657,7 @@ def test_feature_model_pressed_blocks_converge_and_balance():
     x = mesh.points + on.displacement[0]
     assert mesh.surface_vertices_inside(x, depth=sk.self_contact_depth(mesh)).size == 0
     force, pen = solver.self_contact_forces()
-    z = mesh.points[:, 2]
-    lower_support = on.reaction_force[0, z < 1e-9].sum(axis=0)
-    pushed = force[0, n:].sum(axis=0)
-    assert pushed[2] > 0.1 * E * SIZE[0] * SIZE[1] * 0.01
-    np.testing.assert_allclose(force[0].sum(axis=0), 0.0, atol=1e-9 * np.abs(force).max())
-    np.testing.assert_allclose(lower_support, pushed, rtol=1e-4, atol=1e-6 * pushed[2])
+    pushed = assert_blocks_balance(on, force, n)
     h = solver.contact_length
     tolerance = pushed[2] / (SIZE[0] * SIZE[1]) * h / (1000.0 * E) + 1e-2 * h / 2
     assert 0 < pen.max() < 3 * tolerance
@@ -935,12 +937,7 @@ def test_barrier_pressed_blocks_stay_apart_and_balance():
     assert vt > 10
     dist = sc.arrays.pair_distance.numpy()[sc.arrays.pair.numpy() >= 0]
     assert dist.min() > 0.5 * sc.gap  # held near d^: the barrier is stiff (kappa = 1000)
-    z = mesh.points[:, 2]
-    lower_support = on.reaction_force[0, z < 1e-9].sum(axis=0)
-    pushed = force[0, n:].sum(axis=0)
-    assert pushed[2] > 0.1 * E * SIZE[0] * SIZE[1] * 0.01
-    np.testing.assert_allclose(force[0].sum(axis=0), 0.0, atol=1e-9 * np.abs(force).max())
-    np.testing.assert_allclose(lower_support, pushed, rtol=1e-4, atol=1e-6 * pushed[2])
+    pushed = assert_blocks_balance(on, force, n)
     prism, prism_solver, _ = pressed_blocks(1.0, press + sc.gap)
     assert prism.status[0] == fem.SolveStatus.CONVERGED
     assert pushed[2] == pytest.approx(prism_solver.self_contact_forces()[0][0, n:, 2].sum(), rel=3e-2)

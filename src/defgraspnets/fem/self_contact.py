@@ -1257,11 +1257,12 @@ class SelfContact:
         sc.edge_owner = wp.array(owner.astype(np.int32), dtype=wp.int32, device=dev)
         sc.edge_candidates = KE = SELF_CONTACT_EDGE_CANDIDATES
         sc.parallel = SELF_CONTACT_PARALLEL
-        per = (lambda n: n) if barrier else (lambda n: 1)  # noqa: E731 (the pair arrays of "barrier" only)
-        sc.clear = wp.zeros(per(B * S), dtype=wp.float64, device=dev)
-        sc.edge_pair = wp.full(per(B * E * KE), -1, dtype=wp.int32, device=dev)
-        sc.edge_pair_distance = wp.zeros(per(B * E * KE), dtype=wp.float64, device=dev)
-        sc.edge_clear = wp.zeros(per(B * E), dtype=wp.float64, device=dev)
+        # the barrier's own pair arrays (one entry for the other models)
+        vertex_slots, edge_slots = (B * S, B * E) if barrier else (1, 1)
+        sc.clear = wp.zeros(vertex_slots, dtype=wp.float64, device=dev)
+        sc.edge_pair = wp.full(edge_slots * KE, -1, dtype=wp.int32, device=dev)
+        sc.edge_pair_distance = wp.zeros(edge_slots * KE, dtype=wp.float64, device=dev)
+        sc.edge_clear = wp.zeros(edge_slots, dtype=wp.float64, device=dev)
         self.arrays = sc
         self._points = wp.zeros(B * N, dtype=wp.vec3, device=dev)
         indices = wp.array(faces.ravel(), dtype=wp.int32, device=dev)

@@ -3154,27 +3154,12 @@ class QuasiStaticSolver:
             # slot 0 of the first pass is the current state (step 0) when several trials share a pass
             first = 1 if e0 is None else 0
             n = min(T - first, 60 - halvings)
-            steps = np.zeros((T, B))
+            steps = np.zeros((first + n, B))
             for j in range(n):
                 steps[first + j] = np.where(searching, alpha * 0.5**j, 0.0)
-            self._trial_step.assign(steps.reshape(-1))
-            states = (first + n) * B
-            wp.launch(
-                kk.trial_state_kernel,
-                dim=(states, R),
-                inputs=[self._q, sysm.increment, self._trial_step, R, B, self._q_trial],
-                device=self.device,
-            )
-            self._unpack(self._q_trial, self._positions_trial, self._travel_trial, states)
             # only the problems still searching (the others' energies are not needed: on the CPU every
             # problem's energy costs its own kernel time)
-            energies = self._energies_at(
-                self._q_trial,
-                self._positions_trial,
-                self._travel_trial,
-                self._active_array(searching),
-                first + n,
-            )
+            energies = self._energies_along(steps, self._active_array(searching))
             if e0 is None:
                 e0 = energies[0]
             for j in range(n):
@@ -3203,6 +3188,25 @@ class QuasiStaticSolver:
         self._unpack(self._q, self._positions, self._travel)
         return result, first_trial, alpha
 
+    def _energies_along(self, steps: np.ndarray, active) -> np.ndarray:
+        """(n, B) Pi at q + t dq for each of the n <= ``line_search_trials`` rows of step lengths t (``steps``
+        (n, B); dq the last Newton direction, ``system.increment``) in one set of launches, for the
+        problems flagged in ``active`` (an ``_active_array``; 0 for the others). The trial states stay in
+        the trial arrays (state t B + b is row t of problem b)."""
+        B, R, T = self.batch_size, self.rows_per_problem, self._line_search_trials
+        trial = np.zeros((T, B))
+        trial[: len(steps)] = steps
+        self._trial_step.assign(trial.reshape(-1))
+        states = len(steps) * B
+        wp.launch(
+            kk.trial_state_kernel,
+            dim=(states, R),
+            inputs=[self._q, self.system.increment, self._trial_step, R, B, self._q_trial],
+            device=self.device,
+        )
+        self._unpack(self._q_trial, self._positions_trial, self._travel_trial, states)
+        return self._energies_at(self._q_trial, self._positions_trial, self._travel_trial, active, len(steps))
+
     def _refine_full_steps(self, full: np.ndarray, alpha: np.ndarray, e0, e1, slope) -> None:
         """Model "barrier": where a full step was accepted (``full``) but the energy along it curves more
         than Newton's model (the minimum of the parabola through Pi(0), Pi'(0) = ``slope`` and Pi(alpha) =
@@ -3218,19 +3222,8 @@ class QuasiStaticSolver:
         shorter = full & (best < 0.8 * alpha) & (best > 0)
         if not shorter.any():
             return
-        B, R = self.batch_size, self.rows_per_problem
-        steps = np.where(shorter, best, 0.0)
-        self._trial_step.assign(np.concatenate([steps, np.zeros(self._trial_step.shape[0] - B)]))
-        wp.launch(
-            kk.trial_state_kernel,
-            dim=(B, R),
-            inputs=[self._q, self.system.increment, self._trial_step, R, B, self._q_trial],
-            device=self.device,
-        )
-        self._unpack(self._q_trial, self._positions_trial, self._travel_trial, B)
-        e = self._energies_at(
-            self._q_trial, self._positions_trial, self._travel_trial, self._active_array(shorter), 1
-        )[0]
+        steps = np.where(shorter, best, 0.0)[None]
+        e = self._energies_along(steps, self._active_array(shorter))[0]
         lower = shorter & np.isfinite(e) & (e < e1)
         alpha[lower] = best[lower]
 

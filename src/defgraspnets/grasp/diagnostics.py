@@ -207,33 +207,20 @@ def energy_along_newton_step(solver: fem.QuasiStaticSolver, steps) -> tuple[np.n
     ``steps``, with the solver's current state q, its last Newton direction dq (``system.increment``) and
     the self-contact pairs of its last assembly: the function its line search just compared. For tracing a
     line search that failed (its state and direction are still the solver's). Private solver internals."""
-    from defgraspnets.fem import kernels as kk
-
-    B, R, T = solver.batch_size, solver.rows_per_problem, solver._line_search_trials
+    B, T = solver.batch_size, solver._line_search_trials
     steps = np.asarray(steps, dtype=float)
     active = solver._active_array(np.ones(B, dtype=bool))
     total, contact = [], []
     for c0 in range(0, len(steps), T):
         chunk = steps[c0 : c0 + T]
-        trial = np.zeros((T, B))
-        trial[: len(chunk)] = chunk[:, None]
-        solver._trial_step.assign(trial.reshape(-1))
-        states = T * B
-        wp.launch(
-            kk.trial_state_kernel,
-            dim=(states, R),
-            inputs=[solver._q, solver.system.increment, solver._trial_step, R, B, solver._q_trial],
-            device=solver.device,
-        )
-        solver._unpack(solver._q_trial, solver._positions_trial, solver._travel_trial, states)
-        e = solver._energies_at(solver._q_trial, solver._positions_trial, solver._travel_trial, active, T)
-        total.append(e[: len(chunk)])
+        total.append(solver._energies_along(np.repeat(chunk[:, None], B, axis=1), active))
+        states = len(chunk) * B
         sc = wp.zeros(states, dtype=wp.float64, device=solver.device)
         if solver._self_contact is not None:
             solver._self_contact.add_energy(
                 solver._positions_trial, states, solver._youngs, *solver._self_contact_law(), active, sc
             )
-        contact.append(sc.numpy().reshape(T, B)[: len(chunk)])
+        contact.append(sc.numpy().reshape(len(chunk), B))
     return np.concatenate(total), np.concatenate(contact)
 
 
