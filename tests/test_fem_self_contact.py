@@ -900,6 +900,97 @@ def test_barrier_step_bound_keeps_every_pair_apart():
     assert still[0] == np.inf
 
 
+def _left_out_distances(sc, mesh, y):
+    """Brute force at y: per surface vertex the least distance to a triangle that is neither excluded for it
+    nor in its list, and per surface edge (of a sample) to an edge of higher index not in its list."""
+    a = sc.arrays
+    S, K, E, KE = sc.num_surface, a.candidates, sc.num_edges, a.edge_candidates
+    surface, faces, edges = a.surface.numpy(), a.faces.numpy(), a.edges.numpy()
+    start, excluded = a.excluded_start.numpy(), a.excluded.numpy()
+    pair, epair = a.pair.numpy()[: S * K].reshape(S, K), a.edge_pair.numpy()[: E * KE].reshape(E, KE)
+    vertex = np.full(S, np.inf)
+    for s in range(S):
+        skip = set(excluded[start[s] : start[s + 1]]) | set(pair[s][pair[s] >= 0])
+        for f in range(len(faces)):
+            if f not in skip:
+                vertex[s] = min(vertex[s], _point_triangle_distance(y[surface[s]], y[faces[f]]))
+    sample = np.random.default_rng(2).permutation(E)[:40]
+    edge = np.full(len(sample), np.inf)
+    for i, e in enumerate(sample):
+        ends = edges[e]
+        skip_faces = set(excluded[start[ends[0]] : start[ends[0] + 1]]) | set(
+            excluded[start[ends[1]] : start[ends[1] + 1]]
+        )
+        near = {int(g) for f in skip_faces for g in a.face_edges.numpy()[f]}
+        for g in range(e + 1, E):
+            if g not in near and g not in epair[e]:
+                edge[i] = min(edge[i], _segment_distance(y[surface[ends]], y[surface[edges[g]]]))
+    return vertex, sample, edge
+
+
+def test_barrier_pair_lists_are_kept_only_while_no_left_out_pair_can_act(monkeypatch):
+    """A problem's pair lists are kept from one pairing to the next while every clear radius, less the
+    surface's drift since the build, stays at or above SELF_CONTACT_KEPT_CLEAR of its value at the build and
+    above d^: the kept radii are then true lower bounds of every left-out pair's distance (brute force) and
+    the barrier's energy and gradient are those of a fresh pairing. A larger move rebuilds them (as a fresh
+    pairing would), and so does a drift that would leave a left-out pair possibly within d^."""
+    mesh, n, x, sc, pattern = _barrier_state()
+    lists, a = sc._lists, sc.arrays
+    built = a.pair.numpy().copy(), a.edge_pair.numpy().copy()
+    clear0, edge_clear0 = a.clear.numpy().copy(), a.edge_clear.numpy().copy()
+    y = x + np.random.default_rng(4).normal(scale=1e-5, size=x.shape)
+    y[n:, 2] -= 5e-5  # the upper block 50 um lower: 0.1 mm apart
+    sc.update_pairs(wp.array(y, dtype=wp.vec3d, device="cpu"))
+    assert lists.rebuild.numpy()[0] == 0
+    np.testing.assert_array_equal(a.pair.numpy(), built[0])
+    np.testing.assert_array_equal(a.edge_pair.numpy(), built[1])
+    surface, ends = a.surface.numpy(), a.edges.numpy()
+    drift = np.linalg.norm((y - x)[surface], axis=1)
+    np.testing.assert_allclose(a.clear.numpy(), clear0 - drift - drift.max(), rtol=1e-12)
+    edge_drift = np.maximum(drift[ends[:, 0]], drift[ends[:, 1]])
+    np.testing.assert_allclose(a.edge_clear.numpy(), edge_clear0 - edge_drift - drift.max(), rtol=1e-12)
+    vertex, sample, edge = _left_out_distances(sc, mesh, y)
+    assert np.all(vertex >= a.clear.numpy()) and np.all(edge >= a.edge_clear.numpy()[sample])
+    fresh = sk.SelfContact(mesh, pattern, 1, mesh.median_surface_edge_length, "cpu", model="barrier")
+    fresh.update_pairs(wp.array(y, dtype=wp.vec3d, device="cpu"))
+    youngs = wp.array([E], dtype=wp.float64, device="cpu")
+    kept_energy, fresh_energy = _energy(sc, y, youngs, 1000.0, 1e-2), _energy(fresh, y, youngs, 1000.0, 1e-2)
+    assert kept_energy > 0 and kept_energy == pytest.approx(fresh_energy, rel=1e-12)
+    g_kept, g_fresh = _assemble(sc, pattern, y)[0], _assemble(fresh, pattern, y)[0]
+    np.testing.assert_allclose(g_kept, g_fresh, rtol=0, atol=1e-12 * np.abs(g_fresh).max())
+
+    z = y.copy()
+    z[n:, 0] += 1.5e-3  # the upper block 1.5 mm sideways: more than half a clear radius
+    sc.update_pairs(wp.array(z, dtype=wp.vec3d, device="cpu"))
+    assert lists.rebuild.numpy()[0] == 1
+    fresh = sk.SelfContact(mesh, pattern, 1, mesh.median_surface_edge_length, "cpu", model="barrier")
+    fresh.update_pairs(wp.array(z, dtype=wp.vec3d, device="cpu"))
+    for mine, theirs in (
+        (a.pair, fresh.arrays.pair),
+        (a.edge_pair, fresh.arrays.edge_pair),
+        (a.clear, fresh.arrays.clear),
+        (a.edge_clear, fresh.arrays.edge_clear),
+    ):
+        np.testing.assert_array_equal(mine.numpy(), theirs.numpy())
+
+    # the d^ floor alone (no fraction): the upper block slid sideways by t drifts its vertices by t (and the
+    # problem's largest drift is t), so the least kept radius reaches d^ at t*
+    monkeypatch.setattr(sk, "SELF_CONTACT_KEPT_CLEAR", 0.0)
+    sc.update_pairs(wp.array(x, dtype=wp.vec3d, device="cpu"))  # rebuilt at x
+    upper = surface >= n
+    t_star = min(
+        ((clear0 - sc.gap) / (1 + upper)).min(),
+        ((edge_clear0 - sc.gap) / (1 + upper[ends].any(axis=1))).min(),
+    )
+    for t, rebuilt in ((0.9 * t_star, 0), (1.1 * t_star, 1)):
+        w = x.copy()
+        w[n:, 1] += t
+        sc.update_pairs(wp.array(w, dtype=wp.vec3d, device="cpu"))
+        assert lists.rebuild.numpy()[0] == rebuilt
+        if not rebuilt:
+            assert min(a.clear.numpy().min(), a.edge_clear.numpy().min()) >= sc.gap
+
+
 def test_barrier_refuses_a_surface_that_touches_itself_at_rest():
     """Two blocks 0.1 mm apart at rest (within the 0.25 mm activation distance): refused with the vertex,
     the distance and what to do."""

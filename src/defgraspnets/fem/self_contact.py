@@ -105,10 +105,14 @@ vertices meeting bring every pair of their fans' triangles and edges. Pair array
 ``SELF_CONTACT_BARRIER_CANDIDATES`` per vertex and ``SELF_CONTACT_EDGE_CANDIDATES`` per edge (each edge pair
 once, from its lower edge), their couplings 3 per vertex slot and 4 per edge slot. A list that overflows
 within d^ leaves out acting pairs, and which ones can change between Newton iterations (with 4 edge slots
-the ring's grasp 24 cycled on this: measured). Measured on the thin ring
-(``benchmarks/fem_self_contact_barrier_s50.md``): the squeeze ramps that the prism model fails reach 15 N,
-with no surface vertex inside; refuses a surface within d^ of itself at rest (away from the excluded
-neighbourhoods).
+the ring's grasp 24 cycled on this: measured). The lists are kept from one pairing to the next (Verlet
+lists) while every vertex's and edge's clear radius, less the surface's drift since their build, stays at or
+above ``SELF_CONTACT_KEPT_CLEAR`` of its value at the build and above d^ (distances are 1-Lipschitz in the
+moves: no left-out pair can act, and the reduced radius serves the step bound); the ring's ramps rebuild at
+6-9 % of their pairings, which halved their CPU time (``benchmarks/fem_self_contact_kept_pairs_s51.md``).
+Measured on the thin ring (``benchmarks/fem_self_contact_barrier_s50.md``): the squeeze ramps that the
+prism model fails reach 15 N, with no surface vertex inside; refuses a surface within d^ of itself at rest
+(away from the excluded neighbourhoods).
 
 Candidates. Once per Newton iteration (at assembly, from the deformed state) each surface vertex gets up to
 ``SELF_CONTACT_CANDIDATES`` nearest triangles, kept for that iteration's line search, so the energies
@@ -173,6 +177,11 @@ SELF_CONTACT_EDGE_CANDIDATES = 8
 SELF_CONTACT_PARALLEL = 1e-3
 #: model "barrier": a line-search step may close at most this fraction of any pair's distance
 SELF_CONTACT_STEP_FRACTION = 0.9
+#: model "barrier": a problem's pair lists are kept from one pairing to the next (Verlet lists) while every
+#: surface vertex's and edge's clear radius, less what the surface moved since the lists were built, stays
+#: at or above this fraction of its value at the build, and at or above d^ (so every acting pair is listed);
+#: they are rebuilt from the BVH otherwise
+SELF_CONTACT_KEPT_CLEAR = 0.5
 
 
 @wp.func
@@ -249,6 +258,18 @@ class SelfContactArrays:
     edge_clear: wp.array(dtype=wp.float64)  # (B E,) as ``clear``, for the edges
     edge_candidates: int  # KE
     parallel: f64  # SELF_CONTACT_PARALLEL
+
+
+@wp.struct
+class PairLists:
+    """Model "barrier": the state of each problem's pair lists at their last build (Verlet lists)."""
+
+    points: wp.array(dtype=wp.vec3d)  # (B S,) surface positions at the build [m]
+    clear: wp.array(dtype=wp.float64)  # (B S,) vertices' clear radii at the build [m]
+    edge_clear: wp.array(dtype=wp.float64)  # (B E,) edges' clear radii at the build [m]
+    drift: wp.array(dtype=wp.float64)  # (B S,) how far each vertex moved since [m]
+    max_drift: wp.array(dtype=wp.float64)  # (B,) the largest drift of the problem [m]
+    rebuild: wp.array(dtype=wp.int32)  # (B,) 1: build the problem's lists at this pairing
 
 
 @wp.func
@@ -676,11 +697,19 @@ def barrier_pair_kernel(
     meshes: wp.array(dtype=wp.uint64),
     radius: f64,
     sc: SelfContactArrays,
+    lists: PairLists,
 ):
     """The K nearest non-excluded triangles within ``radius`` of each surface vertex (unsigned distances,
-    no depth cap) and the vertex's clear radius: every triangle nearer than it is a candidate."""
+    no depth cap) and the vertex's clear radius: every triangle nearer than it is a candidate. In a problem
+    whose lists are kept (``lists.rebuild[b]`` 0) only the clear radius is updated: the one at the pairing
+    less the vertex's drift and the problem's largest drift since (distances are 1-Lipschitz in the moves)."""
     b, s = wp.tid()
+    i = b * sc.surface.shape[0] + s
+    if lists.rebuild[b] == 0:
+        sc.clear[i] = lists.clear[i] - lists.drift[i] - lists.max_drift[b]
+        return
     x = positions[b * sc.num_vertices + sc.surface[s]]
+    lists.points[i] = x
     K = sc.candidates
     first = (b * sc.surface.shape[0] + s) * K
     for k in range(K):
@@ -697,7 +726,8 @@ def barrier_pair_kernel(
             d, rv, w = vertex_triangle_distance(sc, positions, b * sc.num_vertices, s, f)
             if d < radius:
                 count, dropped = keep_nearest(sc.pair, sc.pair_distance, first, K, count, f, d, dropped)
-    sc.clear[b * sc.surface.shape[0] + s] = dropped
+    sc.clear[i] = dropped
+    lists.clear[i] = dropped
 
 
 @wp.kernel
@@ -706,16 +736,23 @@ def edge_pair_kernel(
     meshes: wp.array(dtype=wp.uint64),
     radius: f64,
     sc: SelfContactArrays,
+    lists: PairLists,
 ):
     """The KE nearest surface edges within ``radius`` of each surface edge e, of higher index than e (each
-    pair once), not on a triangle excluded for either end of e; and e's clear radius."""
+    pair once), not on a triangle excluded for either end of e; and e's clear radius (kept lists: as in
+    :func:`barrier_pair_kernel`, less the larger drift of e's ends)."""
     b, e = wp.tid()
     o = b * sc.num_vertices
     ends = sc.edges[e]
+    E = sc.edges.shape[0]
+    if lists.rebuild[b] == 0:
+        S = sc.surface.shape[0]
+        drift = wp.max(lists.drift[b * S + ends[0]], lists.drift[b * S + ends[1]])
+        sc.edge_clear[b * E + e] = lists.edge_clear[b * E + e] - drift - lists.max_drift[b]
+        return
     xa = positions[o + sc.surface[ends[0]]]
     xb = positions[o + sc.surface[ends[1]]]
     K = sc.edge_candidates
-    E = sc.edges.shape[0]
     first = (b * E + e) * K
     for k in range(K):
         sc.edge_pair[first + k] = -1
@@ -741,6 +778,40 @@ def edge_pair_kernel(
                             sc.edge_pair, sc.edge_pair_distance, first, K, count, g, d, dropped
                         )
     sc.edge_clear[b * E + e] = dropped
+    lists.edge_clear[b * E + e] = dropped
+
+
+@wp.kernel
+def pair_list_drift_kernel(positions: wp.array(dtype=wp.vec3d), sc: SelfContactArrays, lists: PairLists):
+    """How far each surface vertex moved since its problem's lists were built, and the problem's largest."""
+    b, s = wp.tid()
+    i = b * sc.surface.shape[0] + s
+    d = wp.length(positions[b * sc.num_vertices + sc.surface[s]] - lists.points[i])
+    lists.drift[i] = d
+    wp.atomic_max(lists.max_drift, b, d)
+
+
+@wp.kernel
+def stale_vertex_lists_kernel(sc: SelfContactArrays, lists: PairLists, kept: f64):
+    """Mark problem b's lists for a rebuild where a vertex's clear radius, less the drift, fell below
+    ``kept`` of its value at the build or below d^."""
+    b, s = wp.tid()
+    i = b * sc.surface.shape[0] + s
+    c = lists.clear[i]
+    if c - lists.drift[i] - lists.max_drift[b] < wp.max(kept * c, sc.gap):
+        lists.rebuild[b] = 1
+
+
+@wp.kernel
+def stale_edge_lists_kernel(sc: SelfContactArrays, lists: PairLists, kept: f64):
+    """As :func:`stale_vertex_lists_kernel` for the edges (the larger drift of an edge's ends)."""
+    b, e = wp.tid()
+    S = sc.surface.shape[0]
+    ends = sc.edges[e]
+    drift = wp.max(lists.drift[b * S + ends[0]], lists.drift[b * S + ends[1]])
+    c = lists.edge_clear[b * sc.edges.shape[0] + e]
+    if c - drift - lists.max_drift[b] < wp.max(kept * c, sc.gap):
+        lists.rebuild[b] = 1
 
 
 @wp.kernel
@@ -1264,6 +1335,15 @@ class SelfContact:
         sc.edge_pair_distance = wp.zeros(edge_slots * KE, dtype=wp.float64, device=dev)
         sc.edge_clear = wp.zeros(edge_slots, dtype=wp.float64, device=dev)
         self.arrays = sc
+        lists = PairLists()
+        lists.points = wp.zeros(vertex_slots, dtype=wp.vec3d, device=dev)
+        lists.clear = wp.zeros(vertex_slots, dtype=wp.float64, device=dev)
+        lists.edge_clear = wp.zeros(edge_slots, dtype=wp.float64, device=dev)
+        lists.drift = wp.zeros(vertex_slots, dtype=wp.float64, device=dev)
+        lists.max_drift = wp.zeros(B, dtype=wp.float64, device=dev)
+        lists.rebuild = wp.ones(B, dtype=wp.int32, device=dev)  # none built yet
+        self._lists = lists
+        self._lists_built = False
         self._points = wp.zeros(B * N, dtype=wp.vec3, device=dev)
         indices = wp.array(faces.ravel(), dtype=wp.int32, device=dev)
         self._meshes = [wp.Mesh(points=self._points[b * N : (b + 1) * N], indices=indices) for b in range(B)]
@@ -1316,7 +1396,10 @@ class SelfContact:
 
     def update_pairs(self, positions) -> None:
         """Refit the BVHs to ``positions`` (B N, one state per problem) and pair every surface vertex (and
-        with model "barrier" every surface edge)."""
+        with model "barrier" every surface edge). Model "barrier" keeps a problem's lists while no pair
+        left out of them can have closed more than 1 - ``SELF_CONTACT_KEPT_CLEAR`` of its vertex's (edge's)
+        clear radius, nor come within d^ (every acting pair stays listed), and then only updates the clear
+        radii."""
         B, dev, sc = self.batch_size, self.device, self.arrays
         wp.launch(
             surface_points_kernel, dim=B * sc.num_vertices, inputs=[positions, self._points], device=dev
@@ -1325,8 +1408,18 @@ class SelfContact:
             m.refit()
         inputs = [positions, self._mesh_ids, float(self.radius), sc]
         if self.barrier:
-            wp.launch(barrier_pair_kernel, dim=(B, self.num_surface), inputs=inputs, device=dev)
-            wp.launch(edge_pair_kernel, dim=(B, self.num_edges), inputs=inputs, device=dev)
+            lists = self._lists
+            if self._lists_built:  # else every problem builds (rebuild starts at 1)
+                lists.max_drift.zero_()
+                lists.rebuild.zero_()
+                S, E = self.num_surface, self.num_edges
+                wp.launch(pair_list_drift_kernel, dim=(B, S), inputs=[positions, sc, lists], device=dev)
+                kept = SELF_CONTACT_KEPT_CLEAR
+                wp.launch(stale_vertex_lists_kernel, dim=(B, S), inputs=[sc, lists, kept], device=dev)
+                wp.launch(stale_edge_lists_kernel, dim=(B, E), inputs=[sc, lists, kept], device=dev)
+            self._lists_built = True
+            wp.launch(barrier_pair_kernel, dim=(B, self.num_surface), inputs=[*inputs, lists], device=dev)
+            wp.launch(edge_pair_kernel, dim=(B, self.num_edges), inputs=[*inputs, lists], device=dev)
         else:
             wp.launch(pair_kernel, dim=(B, self.num_surface), inputs=inputs, device=dev)
 
