@@ -711,7 +711,7 @@ def barrier_pair_kernel(
     x = positions[b * sc.num_vertices + sc.surface[s]]
     lists.points[i] = x
     K = sc.candidates
-    first = (b * sc.surface.shape[0] + s) * K
+    first = i * K
     for k in range(K):
         sc.pair[first + k] = -1
     r = float(radius) * 1.0001
