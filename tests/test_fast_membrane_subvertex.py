@@ -169,3 +169,35 @@ def test_prism_contact_area_follows_a_small_yaw_continuously(sim):
     assert steps.max() < 0.02 * new.mean()  # and by small amounts
     old = np.abs(np.diff(areas(sim.model)))
     assert (old == 0).any() or old.max() > 0.02 * new.mean()
+
+
+def _mirror_columns(model) -> np.ndarray:
+    """Column index of each column's mirror image about the plane x = 0 (by the mesh at rest)."""
+    from scipy.spatial import cKDTree
+
+    rest = model.sensor.mesh.points[: model.num_columns]
+    dist, idx = cKDTree(rest).query(rest * [-1.0, 1.0, 1.0])
+    assert dist.max() < 1e-12
+    return idx
+
+
+def test_mirror_symmetric_membrane_responds_to_a_mirrored_press_with_the_mirrored_deformation():
+    """A box pressed 4 mm off the axis at a 5 deg yaw, and its mirror image about x = 0 (x -> -x, yaw -> -5
+    deg): on the mirror-symmetric mesh the fast model's deformed inner surfaces (inflated reference plus
+    column displacements) are each other's mirror images to round-off; on the default mesh (every skirt
+    rectangle cut along the same diagonal: already its FEM inflation is asymmetric) they are not."""
+    errors = {}
+    for symmetric in (True, False):
+        sim = build_fast_simulation(cap_divisions=12, camera_scale=0.5, mirror_symmetric=symmetric)
+        model, top = sim.model, pole_height(sim)
+        shapes = []
+        for sign in (1.0, -1.0):
+            rot = Rotation.from_euler("z", sign * 5.0, degrees=True).as_matrix()
+            box = BoxSDF((sign * 0.006, 0.004, top + 0.01 - 0.004), (0.0375, 0.005, 0.01), rot)
+            u = model.solve(box, np.eye(4)).column_displacement
+            assert np.abs(u).max() > 1e-3
+            shapes.append(model.inner_reference + u)
+        mirrored = shapes[1][_mirror_columns(model)] * [-1.0, 1.0, 1.0]
+        errors[symmetric] = np.abs(mirrored - shapes[0]).max()
+    assert errors[True] < 1e-12  # [m]
+    assert errors[False] > 1e-5

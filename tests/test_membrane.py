@@ -244,3 +244,46 @@ def test_forearm_pose_follows_the_device_motion():
     twisted = ForearmCommand(0.01, twist=np.pi / 6).indenter_pose(dims, FOREARM)
     axis = twisted.rotation.apply([1.0, 0, 0])
     np.testing.assert_allclose(axis, [np.cos(np.pi / 6), -np.sin(np.pi / 6), 0], atol=1e-12)
+
+
+@pytest.mark.parametrize("divisions", [4, 12, 20])
+def test_mirror_symmetric_split_maps_the_inner_surface_onto_itself(divisions):
+    """With ``mirror_symmetric`` every inner triangle's mirror image about x = 0 and about y = 0 is an inner
+    triangle too (the cap's shorter-diagonal split already is; the skirt's rectangles are cut by quadrant);
+    the default cuts every skirt rectangle along the same diagonal, which neither mirror keeps."""
+    from scipy.spatial import cKDTree
+
+    for symmetric in (True, False):
+        sensor = build_membrane(cap_divisions=divisions, mirror_symmetric=symmetric)
+        points, faces = sensor.mesh.points, sensor.inner_faces
+        triangles = set(map(tuple, np.sort(faces, axis=1)))
+        for mirror in ([-1.0, 1.0, 1.0], [1.0, -1.0, 1.0]):
+            dist, image = cKDTree(points).query(points * mirror)
+            assert dist.max() < 1e-12
+            kept = np.mean([tuple(t) in triangles for t in np.sort(image[faces], axis=1)])
+            assert kept == 1.0 if symmetric else kept < 0.9
+
+
+def test_mirror_average_is_the_mirror_symmetric_part_of_a_field():
+    """mirror_average of noisy positions is symmetric under both mirrors, idempotent, leaves the (symmetric)
+    rest positions unchanged, and refuses NaN or a wrong shape."""
+    from scipy.spatial import cKDTree
+
+    from defgraspnets.tactile.membrane import mirror_average
+
+    sensor = build_membrane(cap_divisions=8, mirror_symmetric=True)
+    rest = sensor.mesh.points
+    noisy = rest + np.random.default_rng(0).normal(scale=1e-4, size=rest.shape)
+    sym = mirror_average(sensor, noisy)
+    assert np.abs(sym - noisy).max() > 1e-5
+    for mirror in ([-1.0, 1.0, 1.0], [1.0, -1.0, 1.0]):
+        image = cKDTree(rest).query(rest * mirror)[1]
+        np.testing.assert_allclose(sym[image] * mirror, sym, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(mirror_average(sensor, sym), sym, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(mirror_average(sensor, rest), rest, rtol=0, atol=1e-15)
+    bad = noisy.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(MembraneError, match="finite"):
+        mirror_average(sensor, bad)
+    with pytest.raises(MembraneError, match="shape"):
+        mirror_average(sensor, noisy[:-1])

@@ -459,6 +459,7 @@ def build_fast_simulation(
     contact_samples_per_face: int = 0,
     contact_edge_radius: float = 0.0,
     point_weighting: str = "count",
+    mirror_symmetric: bool = False,
 ) -> TactileSimulation:
     """The membrane mesh FEM-inflated to ``gauge_pressure`` [Pa], the calibrated fast model on it and the
     interior camera (pico flexx at ``camera_scale`` of its resolution): the closed loop's sensor
@@ -467,20 +468,26 @@ def build_fast_simulation(
     :class:`TactileSimulation`;
     ``contact_samples_per_face`` (0: vertex-wise contact; (n + 1)(n + 2) / 2: sub-vertex contact) and
     ``contact_edge_radius`` [m]: see :class:`~defgraspnets.tactile.fast_membrane.FastMembrane`;
-    ``point_weighting``: see :class:`TactileSimulation`)."""
+    ``point_weighting``: see :class:`TactileSimulation`; ``mirror_symmetric``: the membrane mesh's skirt
+    split mirror-symmetrically (:func:`~defgraspnets.tactile.membrane.build_membrane`) and the inflated
+    reference's asymmetric part averaged out (:func:`~defgraspnets.tactile.membrane.mirror_average`): the
+    fast model then reads mirrored scenes exactly mirrored)."""
     from defgraspnets.tactile.camera import PICO_FLEXX
     from defgraspnets.tactile.datasets import make_simulator
     from defgraspnets.tactile.fast_membrane import DEFAULT_CALIBRATION, FastMembraneCalibration
     from defgraspnets.tactile.indenters import SphereIndenter
-    from defgraspnets.tactile.membrane import build_membrane
+    from defgraspnets.tactile.membrane import build_membrane, mirror_average
 
     if calibration is not None and not isinstance(calibration, FastMembraneCalibration):
         calibration = FastMembraneCalibration(**{k: float(v) for k, v in dict(calibration).items()})
-    sensor = build_membrane(cap_divisions=cap_divisions, layers=2)
+    sensor = build_membrane(cap_divisions=cap_divisions, layers=2, mirror_symmetric=mirror_symmetric)
     inflated = make_simulator(sensor, SphereIndenter(radius=0.01), gauge_pressure, False, intrinsics=None)
+    reference = inflated.reference.positions
+    if mirror_symmetric:
+        reference = mirror_average(sensor, reference)
     model = FastMembrane(
         sensor,
-        inflated.reference.positions,
+        reference,
         calibration or DEFAULT_CALIBRATION,
         contact_samples_per_face=contact_samples_per_face,
         contact_edge_radius=contact_edge_radius,
