@@ -991,6 +991,37 @@ def test_barrier_pair_lists_are_kept_only_while_no_left_out_pair_can_act(monkeyp
             assert min(a.clear.numpy().min(), a.edge_clear.numpy().min()) >= sc.gap
 
 
+def test_barrier_pair_lists_are_kept_or_rebuilt_per_problem():
+    """Two problems in one batch: the one that moved a little keeps its lists (and its clear radii shrink by
+    its own drift), the one whose upper block slid 1.5 mm rebuilds them, exactly as a fresh pairing of that
+    problem alone; each problem's drift is its own."""
+    mesh, n, x, single, pattern = _barrier_state()
+    h = mesh.median_surface_edge_length
+    sc = sk.SelfContact(mesh, pattern, 2, h, "cpu", model="barrier")
+    sc.update_pairs(wp.array(np.concatenate([x, x]), dtype=wp.vec3d, device="cpu"))
+    S, E, K, KE = sc.num_surface, sc.num_edges, sc.arrays.candidates, sc.arrays.edge_candidates
+    built = sc.arrays.pair.numpy().copy()
+    clear0 = sc.arrays.clear.numpy().copy()
+    y = x.copy()
+    y[n:, 2] -= 2e-5
+    z = x.copy()
+    z[n:, 0] += 1.5e-3
+    sc.update_pairs(wp.array(np.concatenate([y, z]), dtype=wp.vec3d, device="cpu"))
+    np.testing.assert_array_equal(sc._lists.rebuild.numpy(), [0, 1])
+    np.testing.assert_array_equal(sc.arrays.pair.numpy()[: S * K], built[: S * K])
+    assert sc._lists.max_drift.numpy()[0] == pytest.approx(2e-5, rel=1e-9)
+    np.testing.assert_allclose(
+        sc.arrays.clear.numpy()[:S],
+        clear0[:S] - np.where(sc.arrays.surface.numpy() >= n, 2e-5, 0.0) - 2e-5,
+        rtol=1e-12,
+    )
+    alone = sk.SelfContact(mesh, pattern, 1, h, "cpu", model="barrier")
+    alone.update_pairs(wp.array(z, dtype=wp.vec3d, device="cpu"))
+    np.testing.assert_array_equal(sc.arrays.pair.numpy()[S * K :], alone.arrays.pair.numpy())
+    np.testing.assert_array_equal(sc.arrays.edge_pair.numpy()[E * KE :], alone.arrays.edge_pair.numpy())
+    np.testing.assert_array_equal(sc.arrays.clear.numpy()[S:], alone.arrays.clear.numpy())
+
+
 def test_barrier_refuses_a_surface_that_touches_itself_at_rest():
     """Two blocks 0.1 mm apart at rest (within the 0.25 mm activation distance): refused with the vertex,
     the distance and what to do."""
