@@ -312,9 +312,9 @@ def _merge(points: np.ndarray, cells: np.ndarray, tol: float) -> tuple[np.ndarra
 
 def _split_quads(quads: np.ndarray, positions: np.ndarray, mirror_symmetric: bool = False) -> np.ndarray:
     """Two triangles per quad, cut along the shorter diagonal (deterministic, better shaped). Quads whose
-    diagonals are equally long (to 1e-9: the skirt's rectangles) are cut along 0-2; with
-    ``mirror_symmetric`` along 0-2 where the quad's centre has x y >= 0 and along 1-3 elsewhere, so that
-    the cut is mirror-symmetric about the planes x = 0 and y = 0 (no quad straddles them)."""
+    diagonals are equally long (the skirt's rectangles) are all cut along 0-2; with ``mirror_symmetric``
+    (ties to 1e-9) along 0-2 where the quad's centre has x y >= 0 and along 1-3 elsewhere, so that the cut
+    is mirror-symmetric about the planes x = 0 and y = 0 (no quad straddles them)."""
     q = quads
     d02 = np.linalg.norm(positions[q[:, 0]] - positions[q[:, 2]], axis=1)
     d13 = np.linalg.norm(positions[q[:, 1]] - positions[q[:, 3]], axis=1)
@@ -450,7 +450,7 @@ def mirror_average(sensor: MembraneSensor, positions) -> np.ndarray:
     """The mean of vertex ``positions`` (N, 3), sensor frame [m], and their images under the mirrors about
     x = 0, y = 0 and both (each vertex takes its mirror vertex's position, mirrored): the mirror-symmetric
     part of a field on the membrane. The FEM inflation of even a mirror-symmetric surface mesh is not
-    symmetric (the prisms' tet split follows vertex numbers; ~0.1 mm at 1500 Pa, cap 12), which a fast model
+    symmetric (the prisms' tet split follows vertex numbers; 0.12 mm at 1500 Pa, cap 12), which a fast model
     built on it would carry into every reading.
 
     Raises:
@@ -494,8 +494,9 @@ def build_membrane(
         material: membrane material.
         mirror_symmetric: split the skirt's rectangles into triangles mirror-symmetrically about the
             planes x = 0 and y = 0 (the cap's split already is): then the whole inner surface maps onto
-            itself under both mirrors, and so does a fast model's response
-            (:class:`~defgraspnets.tactile.fast_membrane.FastMembrane`). False (default) cuts every skirt
+            itself under both mirrors (a fast model's response does too once its reference shape is
+            symmetric as well: :func:`mirror_average` of the FEM inflation, as
+            ``build_fast_simulation(mirror_symmetric=True)`` does). False (default) cuts every skirt
             rectangle along the same diagonal, as the meshes of the shipped tactile datasets and
             checkpoints; the skirt then maps onto itself under neither mirror.
 
@@ -540,11 +541,7 @@ def build_membrane(
     surface_dir = np.concatenate([dirs, np.tile(ring_dirs, (m, 1))])
     surface_pos[ring_ids[-1], 2] = dims.z_rim  # exactly on the rim plane
     quads = np.concatenate([cap_quads, *skirt_quads])
-    triangles = (
-        _split_quads(quads, surface_pos, mirror_symmetric=True)
-        if mirror_symmetric
-        else _split_quads(quads, surface_pos)
-    )
+    triangles = _split_quads(quads, surface_pos, mirror_symmetric=mirror_symmetric)
 
     # sweep through the thickness and split prisms
     num_surface = len(surface_pos)
