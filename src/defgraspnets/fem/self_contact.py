@@ -691,6 +691,23 @@ def keep_nearest(
     return n, least
 
 
+@wp.func
+def kept_vertex_clear(sc: SelfContactArrays, lists: PairLists, b: int, s: int) -> f64:
+    """Surface vertex s's clear radius at its problem's list build, less its drift and the problem's
+    largest drift since: no left-out triangle is nearer (distances are 1-Lipschitz in the moves)."""
+    i = b * sc.surface.shape[0] + s
+    return lists.clear[i] - lists.drift[i] - lists.max_drift[b]
+
+
+@wp.func
+def kept_edge_clear(sc: SelfContactArrays, lists: PairLists, b: int, e: int) -> f64:
+    """As :func:`kept_vertex_clear` for surface edge e (the larger drift of its ends)."""
+    S = sc.surface.shape[0]
+    ends = sc.edges[e]
+    drift = wp.max(lists.drift[b * S + ends[0]], lists.drift[b * S + ends[1]])
+    return lists.edge_clear[b * sc.edges.shape[0] + e] - drift - lists.max_drift[b]
+
+
 @wp.kernel
 def barrier_pair_kernel(
     positions: wp.array(dtype=wp.vec3d),
@@ -706,7 +723,7 @@ def barrier_pair_kernel(
     b, s = wp.tid()
     i = b * sc.surface.shape[0] + s
     if lists.rebuild[b] == 0:
-        sc.clear[i] = lists.clear[i] - lists.drift[i] - lists.max_drift[b]
+        sc.clear[i] = kept_vertex_clear(sc, lists, b, s)
         return
     x = positions[b * sc.num_vertices + sc.surface[s]]
     lists.points[i] = x
@@ -746,9 +763,7 @@ def edge_pair_kernel(
     ends = sc.edges[e]
     E = sc.edges.shape[0]
     if lists.rebuild[b] == 0:
-        S = sc.surface.shape[0]
-        drift = wp.max(lists.drift[b * S + ends[0]], lists.drift[b * S + ends[1]])
-        sc.edge_clear[b * E + e] = lists.edge_clear[b * E + e] - drift - lists.max_drift[b]
+        sc.edge_clear[b * E + e] = kept_edge_clear(sc, lists, b, e)
         return
     xa = positions[o + sc.surface[ends[0]]]
     xb = positions[o + sc.surface[ends[1]]]
@@ -796,9 +811,8 @@ def stale_vertex_lists_kernel(sc: SelfContactArrays, lists: PairLists, kept: f64
     """Mark problem b's lists for a rebuild where a vertex's clear radius, less the drift, fell below
     ``kept`` of its value at the build or below d^."""
     b, s = wp.tid()
-    i = b * sc.surface.shape[0] + s
-    c = lists.clear[i]
-    if c - lists.drift[i] - lists.max_drift[b] < wp.max(kept * c, sc.gap):
+    c = lists.clear[b * sc.surface.shape[0] + s]
+    if kept_vertex_clear(sc, lists, b, s) < wp.max(kept * c, sc.gap):
         lists.rebuild[b] = 1
 
 
@@ -806,11 +820,8 @@ def stale_vertex_lists_kernel(sc: SelfContactArrays, lists: PairLists, kept: f64
 def stale_edge_lists_kernel(sc: SelfContactArrays, lists: PairLists, kept: f64):
     """As :func:`stale_vertex_lists_kernel` for the edges (the larger drift of an edge's ends)."""
     b, e = wp.tid()
-    S = sc.surface.shape[0]
-    ends = sc.edges[e]
-    drift = wp.max(lists.drift[b * S + ends[0]], lists.drift[b * S + ends[1]])
     c = lists.edge_clear[b * sc.edges.shape[0] + e]
-    if c - drift - lists.max_drift[b] < wp.max(kept * c, sc.gap):
+    if kept_edge_clear(sc, lists, b, e) < wp.max(kept * c, sc.gap):
         lists.rebuild[b] = 1
 
 
