@@ -1149,3 +1149,170 @@ def test_barrier_line_search_with_nothing_to_search(trials):
         failed, first, alpha = solver._line_search(working, 1.0)
         assert alpha[0] == 0.0 and failed[0] == int(working[0])
     np.testing.assert_array_equal(solver._q.numpy(), before)
+
+
+# ---------------------------------------------------------------- the barrier's friction
+MU = 0.5
+
+
+def _friction_state(slide: float, seed: int = 2):
+    """The crossed blocks 0.15 mm apart (``_barrier_state``) with barrier friction mu = 0.5 lagged there,
+    then the upper block slid sideways by ``slide`` [m] along (1, 0.3) and every vertex jiggled by ~0.3 um:
+    (mesh, upper block's first vertex, lag state, slid state, the frictional and frictionless SelfContact,
+    pattern, slide direction)."""
+    mesh, n, x0, frictionless, pattern = _barrier_state()
+    sc = sk.SelfContact(
+        mesh, pattern, 1, mesh.median_surface_edge_length, "cpu", model="barrier", friction=MU
+    )
+    youngs = wp.array([E], dtype=wp.float64, device="cpu")
+    lag = wp.array(x0, dtype=wp.vec3d, device="cpu")
+    sc.update_pairs(lag)
+    sc.lag_friction(lag, youngs, 1000.0, wp.array([1], dtype=wp.int32, device="cpu"))
+    direction = np.array([1.0, 0.3, 0.0]) / np.linalg.norm([1.0, 0.3, 0.0])
+    x = x0.copy()
+    x[n:] += slide * direction
+    x += np.random.default_rng(seed).normal(scale=3e-7, size=x.shape)
+    for contact in (sc, frictionless):
+        contact.update_pairs(wp.array(x, dtype=wp.vec3d, device="cpu"))
+    return mesh, n, x0, x, sc, frictionless, pattern, direction
+
+
+def test_barrier_friction_option_is_checked():
+    mesh, n, x0, _, pattern = _barrier_state()
+    h = mesh.median_surface_edge_length
+    for bad in (-0.1, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="friction"):
+            sk.SelfContact(mesh, pattern, 1, h, "cpu", model="barrier", friction=bad)
+        with pytest.raises(ValueError, match="self_contact_friction"):
+            fem.SolverOptions(self_contact=1.0, self_contact_model="barrier", self_contact_friction=bad)
+    with pytest.raises(ValueError, match="barrier"):
+        sk.SelfContact(mesh, pattern, 1, h, "cpu", model="prism", friction=0.3)
+    with pytest.raises(ValueError, match="self_contact_model 'barrier'"):
+        fem.SolverOptions(self_contact=1.0, self_contact_friction=0.3)
+    with pytest.raises(ValueError, match="self_contact > 0"):
+        fem.SolverOptions(self_contact_model="barrier", self_contact_friction=0.3)
+
+
+@pytest.mark.parametrize("slide", [1e-5, 2e-4])
+def test_barrier_friction_gradient_and_hessian_match_finite_differences(slide):
+    """Lagged friction (mu 0.5) of the crossed blocks, the upper block slid by 10 um (inside the stick zone
+    eps = 0.01 h, ~50 um) or 0.2 mm (sliding): the lagged pairs are the barrier's active ones; the gradient
+    matches central differences of the energy; the friction forces are internal; sliding, they oppose the
+    slide with Coulomb's magnitude mu sum(lambda) (every pair at its capacity), sticking, less; the friction
+    Hessian is symmetric PSD and matches differences of the friction gradient."""
+    mesh, n, x0, x, sc, frictionless, pattern, direction = _friction_state(slide)
+    fr = sc._friction
+    vt, ee = _active_pairs(frictionless, x0)
+    faces, edges = fr.face.numpy(), fr.edge.numpy()
+    lagged_vt, lagged_ee = int((faces >= 0).sum()), int((edges >= 0).sum())
+    assert lagged_vt > 10 and lagged_ee > 10
+    assert sc.slip == pytest.approx(sk.SELF_CONTACT_FRICTION_SLIP * mesh.median_surface_edge_length)
+    capacity = MU * (fr.force.numpy()[faces >= 0].sum() + fr.edge_force.numpy()[edges >= 0].sum())
+    assert capacity > 0
+    youngs = wp.array([E], dtype=wp.float64, device="cpu")
+    g, H = _assemble(sc, pattern, x)
+    g0, H0 = _assemble(frictionless, pattern, x)
+    friction = -(g - g0)  # the friction forces
+    np.testing.assert_allclose(friction.sum(axis=0), 0.0, atol=1e-12 * np.abs(friction).max())
+    on_upper = friction[n:].sum(axis=0)
+    tangential = on_upper - (on_upper @ [0, 0, 1.0]) * np.array([0, 0, 1.0])
+    assert tangential @ direction < 0  # against the slide
+    if slide > sc.slip:
+        assert np.linalg.norm(tangential) == pytest.approx(capacity, rel=1e-2)
+    else:
+        assert 0.05 * capacity < np.linalg.norm(tangential) < 0.9 * capacity
+    touched = np.flatnonzero(np.linalg.norm(friction, axis=1) > 0)
+    _assert_fd_gradient(sc, x, g, touched[::4], youngs, 1000.0, 1e-2, eps=1e-10)
+    # the friction Hessian (pattern blocks and couplings): symmetric PSD, the derivative of its gradient
+    index = {u: k for k, u in enumerate(touched)}
+    m = 3 * len(touched)
+    full = np.zeros((m, m))
+    for a_ in touched:
+        for b_ in touched:
+            k = pattern.block_index(np.array([a_]), np.array([b_]))[0]
+            if k >= 0:
+                full[3 * index[a_] : 3 * index[a_] + 3, 3 * index[b_] : 3 * index[b_] + 3] += H[k] - H0[k]
+    rows, cols, coupling = (a.numpy() for a in sc.coupling)
+    C = sc.couplings_per_problem
+    for r, c, blk in zip(rows[C // 2 :], cols[C // 2 :], coupling[C // 2 :]):
+        if np.abs(blk).max() > 0:
+            full[3 * index[r] : 3 * index[r] + 3, 3 * index[c] : 3 * index[c] + 3] += blk
+            full[3 * index[c] : 3 * index[c] + 3, 3 * index[r] : 3 * index[r] + 3] += blk.T
+    np.testing.assert_allclose(full, full.T, atol=1e-12 * np.abs(full).max())
+    assert np.linalg.eigvalsh(full).min() > -1e-9 * np.abs(full).max()
+    v = np.random.default_rng(3).normal(size=(len(touched), 3))
+    move = np.zeros_like(x)
+    move[touched] = v
+    eps = 1e-11
+    diff = []
+    for sign in (1, -1):
+        xs = x + sign * eps * move
+        for contact in (sc, frictionless):
+            contact.update_pairs(wp.array(xs, dtype=wp.vec3d, device="cpu"))
+        diff.append(_assemble(sc, pattern, xs)[0] - _assemble(frictionless, pattern, xs)[0])
+    fd = ((diff[0] - diff[1]) / (2 * eps))[touched].ravel()
+    np.testing.assert_allclose(full @ v.ravel(), fd, rtol=0, atol=1e-4 * np.abs(fd).max())
+
+
+def _slid_block(mu: float, slides, press: float = 2e-3):
+    """A 10 mm cube of one mesh with a 30 x 30 x 10 mm slab, 0.5 mm above the slab's middle; the slab's
+    bottom and the cube's top fixed (prescribed); barrier self-contact with friction ``mu``. The top pressed
+    down by ``press``, then moved sideways (x) by each of ``slides`` [m] in turn with the press held (the
+    cube stays over the slab): per slide the contact force on the cube [N] (barrier and friction)."""
+    slab = fem.TetMesh.box(size=(0.03, 0.03, 0.01), divisions=(6, 6, 2))
+    cube = fem.TetMesh.box(size=(0.01, 0.01, 0.01), divisions=(2, 2, 2))
+    n = slab.num_vertices
+    mesh = fem.TetMesh(
+        np.vstack([slab.points, cube.points + [0.0103, 0.0107, 0.0105]]),
+        np.vstack([slab.tets, cube.tets + n]),
+    )
+    z = mesh.points[:, 2]
+    fixed = np.zeros((mesh.num_vertices, 3), dtype=bool)
+    top = z > 0.0205 - 1e-9
+    fixed[(z < 1e-9) | top] = True
+    options = fem.SolverOptions(
+        linear_solver="direct",
+        self_contact=1.0,
+        contact_smoothing=1e-2,
+        self_contact_model="barrier",
+        self_contact_friction=mu,
+    )
+    solver = fem.QuasiStaticSolver(
+        mesh, [], fem.Material(E, 0.3, 1000.0, model="neohookean"), fixed=fixed, options=options
+    )
+    u = np.zeros((mesh.num_vertices, 3))
+    u[top, 2] = -press
+    assert (
+        solver.solve(prescribed_displacement=u, initial_fraction=0.25).status[0] == fem.SolveStatus.CONVERGED
+    )
+    out = []
+    for slide in slides:
+        u[top, 0] = slide
+        eq = solver.solve(prescribed_displacement=u, initial_fraction=0.5)
+        assert eq.status[0] == fem.SolveStatus.CONVERGED
+        force, _ = solver.self_contact_forces()
+        pushed = force[0, n:].sum(axis=0)
+        np.testing.assert_allclose(force[0].sum(axis=0), 0.0, atol=1e-9 * np.abs(force).max())
+        support = eq.reaction_force[0, z < 1e-9].sum(axis=0)
+        np.testing.assert_allclose(support, pushed, rtol=1e-4, atol=1e-6 * pushed[2])
+        out.append(pushed)
+    return out
+
+
+def test_barrier_friction_sticks_then_slides_at_coulombs_limit():
+    """A cube pressed onto a slab (one mesh), its top then moved sideways with the press held, with and
+    without friction (mu = 0.5): the friction's share of the lateral force on the cube (the difference of
+    the two, per mu F_z) grows with the move while the interface sticks (the bodies' shear and partial
+    slip), then is Coulomb's limit while the cube slides (within 10 %: the slab's dent under the cube's
+    leading edge tilts normals; measured 1.00-1.07). Without friction the lateral force is a few % of F_z.
+    The lagged normal forces are re-lagged until consistent. Forces balance the slab's support."""
+    slides = [5e-4, 1e-3, 2e-3, 4e-3, 5e-3, 6e-3]
+    frictionless = _slid_block(0.0, slides)
+    with_friction = _slid_block(MU, slides)
+    share = []
+    for p0, p in zip(frictionless, with_friction):
+        assert abs(p0[0]) < 0.03 * p0[2]
+        share.append(-(p[0] - p0[0]) / (MU * p[2]))
+    assert 0.05 < share[0] < share[1] < share[2] < 0.8
+    for s in share[3:]:
+        assert s == pytest.approx(1.0, abs=0.1)

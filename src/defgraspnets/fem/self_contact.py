@@ -1,4 +1,5 @@
-"""Frictionless self-contact of the object's surface (Warp kernels), ``SolverOptions.self_contact``.
+"""Self-contact of the object's surface (Warp kernels), ``SolverOptions.self_contact``; with the "barrier"
+model optionally frictional (``SolverOptions.self_contact_friction``).
 
 A soft object folds onto itself (a slab bent between the pads) or collapses (a thin ring squeezed flat);
 without self-contact its surface parts pass through each other freely. This module adds a penalty between
@@ -99,7 +100,7 @@ derivatives left out); PSD. That Hessian still jumps where a closest point moves
 and a corner, and full Newton steps can overshoot back and forth across such a boundary: with this model
 the line search shortens an accepted full step to the minimum of the parabola through the energy, its slope
 and the full step's energy where that lies below 0.8 of the step (``QuasiStaticSolver._refine_full_steps``).
-Not IPC: no adaptive barrier stiffness (kappa is the rigid contact's), no friction, and duplicate pairs (a
+Not IPC: no adaptive barrier stiffness (kappa is the rigid contact's), and duplicate pairs (a
 vertex near an edge has both triangles' pairs, and the edge pairs through it) are summed, not merged: two
 vertices meeting bring every pair of their fans' triangles and edges. Pair arrays:
 ``SELF_CONTACT_BARRIER_CANDIDATES`` per vertex and ``SELF_CONTACT_EDGE_CANDIDATES`` per edge (each edge pair
@@ -113,6 +114,32 @@ moves: no left-out pair can act, and the reduced radius serves the step bound); 
 Measured on the thin ring (``benchmarks/fem_self_contact_barrier_s50.md``): the squeeze ramps that the
 prism model fails reach 15 N, with no surface vertex inside; refuses a surface within d^ of itself at rest
 (away from the excluded neighbourhoods).
+
+Friction (model "barrier", ``SolverOptions.self_contact_friction`` = mu > 0; IPC's lagged friction, with the
+quasi-static slip in place of IPC's velocity times the time step). At the start of each load increment every
+barrier pair closer than d^ becomes a friction pair, with its normal force lambda (the barrier's force,
+mollified for edge pairs), unit normal n and closest points (weights w, parameters (s, t)) frozen, and the
+positions X there as the reference. Its potential is
+
+    D = mu lambda F(|(I - n n^T) u|),   u = sum_i c_i (x_i - X_i),
+    F(y) = y^2 / eps - y^3 / (3 eps^2) for y < eps,   y - eps / 3 beyond,
+
+with c the pair's coefficients (as the barrier's: (1, -w) or (1 - s, s, -(1 - t), -t)) and eps =
+``SELF_CONTACT_FRICTION_SLIP`` h the stick zone: the friction force mu lambda F'(y) along the slip rises from
+0 to Coulomb's mu lambda over eps, and is mu lambda beyond (sliding). Gradient exact; Hessian exact and PSD (c
+c^T (x) mu lambda (F''(y) t t^T / y^2 + F'(y) / y (P - t t^T / y^2)) with P = I - n n^T, t = P u), its
+couplings after the barrier's (as many slots again). The normal forces are re-lagged from the iterate (the
+slips' reference kept) where the rigid contact's are (``_relag_friction``: the first
+``friction_relag_iterations`` Newton iterations of an increment), and a converged state is accepted only once
+its lagged forces are its own: every slot's capacity error mu (|lambda - lambda_lag| + lambda |n - n_lag|)
+below the residual tolerance (``friction_lag_error_kernel``, with the rigid contact's check); else it is
+re-lagged and Newton goes on (up to ``max_friction_relags``). Measured (tests): a cube pressed onto a slab
+of one mesh and pushed sideways sticks (the lateral force grows with the push) and then slides at mu F_z
+within 1.00-1.07 (the slab's dent under the leading edge tilts normals); the re-lags to consistency cost
+Newton iterations (the cube's sideways moves to 2, 4, 5, 6 mm: 32, 176, 125, 381 against 17, 27, 28, 117
+without the check). With the re-lags of the
+first iterations alone (no consistency check) the lagged normal forces summed to 0.269 N against the
+converged state's 0.163 N (taken from a transient early iterate) and the sliding force overshot mu F_z by 8 %.
 
 Candidates. Once per Newton iteration (at assembly, from the deformed state) each surface vertex gets up to
 ``SELF_CONTACT_CANDIDATES`` nearest triangles, kept for that iteration's line search, so the energies
@@ -182,6 +209,9 @@ SELF_CONTACT_STEP_FRACTION = 0.9
 #: at or above this fraction of its value at the build, and at or above d^ (so every acting pair is listed);
 #: they are rebuilt from the BVH otherwise
 SELF_CONTACT_KEPT_CLEAR = 0.5
+#: model "barrier" with friction (``SolverOptions.self_contact_friction`` > 0): the tangential slip over which
+#: a pair's friction force rises to Coulomb's mu lambda (the stick zone; IPC's eps_v dt), in units of h
+SELF_CONTACT_FRICTION_SLIP = 1e-2
 
 
 @wp.func
@@ -270,6 +300,25 @@ class PairLists:
     drift: wp.array(dtype=wp.float64)  # (B S,) how far each vertex moved since [m]
     max_drift: wp.array(dtype=wp.float64)  # (B,) the largest drift of the problem [m]
     rebuild: wp.array(dtype=wp.int32)  # (B,) 1: build the problem's lists at this pairing
+
+
+@wp.struct
+class FrictionPairs:
+    """Model "barrier" with friction: each problem's friction pairs, lagged at the start of its load increment
+    (IPC's lagged friction): the barrier pairs active there, with their normal force, normal and closest
+    points, and the positions they slip from."""
+
+    reference: wp.array(dtype=wp.vec3d)  # (B N,) positions at the lag [m]
+    face: wp.array(dtype=wp.int32)  # (B S K,) triangle of each vertex pair slot, -1: none
+    weights: wp.array(dtype=wp.vec3d)  # (B S K,) barycentric weights of its closest point
+    normal: wp.array(dtype=wp.vec3d)  # (B S K,) unit normal (x_v - c) / d
+    force: wp.array(dtype=wp.float64)  # (B S K,) normal force lambda [N]
+    edge: wp.array(dtype=wp.int32)  # (B E KE,) other edge of each edge pair slot, -1: none
+    params: wp.array(dtype=wp.vec2d)  # (B E KE,) closest points' parameters (s, t)
+    edge_normal: wp.array(dtype=wp.vec3d)  # (B E KE,) unit normal (p - q) / d
+    edge_force: wp.array(dtype=wp.float64)  # (B E KE,) normal force lambda (mollified) [N]
+    mu: f64  # friction coefficient
+    slip: f64  # stick zone eps [m]
 
 
 @wp.func
@@ -1114,6 +1163,469 @@ def edge_barrier_force_kernel(
                 wp.atomic_add(force, o + sc.surface[eb[1]], (-st[1] * fn) * r)
 
 
+# ---------------------------------------------------------------- model "barrier": lagged friction
+@wp.func
+def friction_energy(u: wp.vec3d, n: wp.vec3d, mu_lambda: f64, eps: f64) -> f64:
+    """D = mu lambda F(y) of a pair whose relative motion since the lag is u, y = |(I - n n^T) u| its
+    tangential slip: F(y) = y^2 / eps - y^3 / (3 eps^2) below the stick zone eps, y - eps / 3 beyond (IPC's
+    f0, less its value at 0: C1, F' = f1 rises from 0 to 1 over the stick zone)."""
+    t = u - wp.dot(u, n) * n
+    y = wp.length(t)
+    if y < eps:
+        return mu_lambda * (y * y / eps - y * y * y / (f64(3.0) * eps * eps))
+    return mu_lambda * (y - eps / f64(3.0))
+
+
+@wp.func
+def friction_gradient(u: wp.vec3d, n: wp.vec3d, mu_lambda: f64, eps: f64) -> wp.vec3d:
+    """dD/du = mu lambda f1(y) t / y, t = (I - n n^T) u: the friction force's magnitude rises with the slip
+    to mu lambda at eps (Coulomb's), along the slip."""
+    t = u - wp.dot(u, n) * n
+    y = wp.length(t)
+    if y < eps:
+        return (mu_lambda * (f64(2.0) / eps - y / (eps * eps))) * t
+    return (mu_lambda / y) * t
+
+
+@wp.func
+def friction_hessian(u: wp.vec3d, n: wp.vec3d, mu_lambda: f64, eps: f64) -> wp.mat33d:
+    """d^2D/du^2 (exact, PSD): mu lambda ((2 / eps - y / eps^2) P - t t^T / (eps^2 y)) in the stick zone,
+    mu lambda (P - t t^T / y^2) / y beyond, P = I - n n^T."""
+    P = wp.identity(n=3, dtype=f64) - wp.outer(n, n)
+    t = P * u
+    y = wp.length(t)
+    if y < eps:
+        h = (f64(2.0) / eps - y / (eps * eps)) * P
+        if y > f64(0.0):
+            h = h - (f64(1.0) / (eps * eps * y)) * wp.outer(t, t)
+        return mu_lambda * h
+    return (mu_lambda / y) * (P - wp.outer(t, t) / (y * y))
+
+
+@wp.kernel
+def lag_friction_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    sc: SelfContactArrays,
+    youngs: wp.array(dtype=wp.float64),
+    kappa: f64,
+    active: wp.array(dtype=wp.int32),
+    fr: FrictionPairs,
+):
+    """Lag the friction of the active problems at ``positions``: every vertex-triangle pair of surface vertex
+    s closer than d^, with its normal force, normal and closest point's weights; the other slots none."""
+    b, s = wp.tid()
+    if active[b] == 0:
+        return
+    K = sc.candidates
+    first = (b * sc.surface.shape[0] + s) * K
+    kn = pair_stiffness(sc, kappa, youngs[b], s)
+    for k in range(K):
+        i = first + k
+        fr.face[i] = -1
+        f = sc.pair[i]
+        if f >= 0:
+            d, r, w = vertex_triangle_distance(sc, positions, b * sc.num_vertices, s, f)
+            if d > f64(0.0) and d < sc.gap:
+                fr.face[i] = f
+                fr.weights[i] = w
+                fr.normal[i] = r / d
+                fr.force[i] = barrier_force(d, kn, sc.gap)
+
+
+@wp.kernel
+def lag_edge_friction_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    sc: SelfContactArrays,
+    youngs: wp.array(dtype=wp.float64),
+    kappa: f64,
+    active: wp.array(dtype=wp.int32),
+    fr: FrictionPairs,
+):
+    """As :func:`lag_friction_kernel` for the edge-edge pairs of surface edge e (mollified normal force)."""
+    b, e = wp.tid()
+    if active[b] == 0:
+        return
+    K = sc.edge_candidates
+    first = (b * sc.edges.shape[0] + e) * K
+    o = b * sc.num_vertices
+    for k in range(K):
+        i = first + k
+        fr.edge[i] = -1
+        g = sc.edge_pair[i]
+        if g >= 0:
+            d, r, st = edge_edge_distance(sc, positions, o, e, g)
+            if d > f64(0.0) and d < sc.gap:
+                m, dm_da, dm_db = edge_mollifier(sc, positions, o, e, g)
+                fr.edge[i] = g
+                fr.params[i] = st
+                fr.edge_normal[i] = r / d
+                fr.edge_force[i] = m * barrier_force(
+                    d, edge_pair_stiffness(sc, kappa, youngs[b], e, g), sc.gap
+                )
+
+
+@wp.kernel
+def lag_reference_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    sc: SelfContactArrays,
+    active: wp.array(dtype=wp.int32),
+    fr: FrictionPairs,
+):
+    """The active problems' positions at the lag: the pairs' slips are measured from them."""
+    b, v = wp.tid()
+    if active[b] == 0:
+        return
+    i = b * sc.num_vertices + v
+    fr.reference[i] = positions[i]
+
+
+@wp.func
+def moved(positions: wp.array(dtype=wp.vec3d), o: int, fr: FrictionPairs, ref: int, v: int) -> wp.vec3d:
+    """How far vertex v moved since the lag (state at offset o, its problem's reference at ref)."""
+    return positions[o + v] - fr.reference[ref + v]
+
+
+@wp.func
+def vertex_pair_slip(
+    sc: SelfContactArrays,
+    positions: wp.array(dtype=wp.vec3d),
+    o: int,
+    fr: FrictionPairs,
+    ref: int,
+    s: int,
+    i: int,
+) -> wp.vec3d:
+    """Relative motion since the lag of surface vertex s and its friction pair slot i's closest point (the
+    lagged weights): u = dx_v - sum_j w_j dx_j."""
+    ids = sc.faces[fr.face[i]]
+    w = fr.weights[i]
+    u = moved(positions, o, fr, ref, sc.surface[s])
+    for j in range(3):
+        u -= w[j] * moved(positions, o, fr, ref, ids[j])
+    return u
+
+
+@wp.func
+def edge_pair_slip(
+    sc: SelfContactArrays,
+    positions: wp.array(dtype=wp.vec3d),
+    o: int,
+    fr: FrictionPairs,
+    ref: int,
+    e: int,
+    i: int,
+) -> wp.vec3d:
+    """Relative motion since the lag of edge e's and slot i's other edge's closest points (lagged (s, t))."""
+    ea = sc.edges[e]
+    eb = sc.edges[fr.edge[i]]
+    st = fr.params[i]
+    u = (f64(1.0) - st[0]) * moved(positions, o, fr, ref, sc.surface[ea[0]])
+    u += st[0] * moved(positions, o, fr, ref, sc.surface[ea[1]])
+    u -= (f64(1.0) - st[1]) * moved(positions, o, fr, ref, sc.surface[eb[0]])
+    return u - st[1] * moved(positions, o, fr, ref, sc.surface[eb[1]])
+
+
+@wp.kernel
+def friction_energy_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    sc: SelfContactArrays,
+    fr: FrictionPairs,
+    active: wp.array(dtype=wp.int32),
+    energy: wp.array(dtype=wp.float64),
+):
+    """energy[p] += the friction potential of the vertex-triangle friction pairs of surface vertex s in
+    trial state p."""
+    p, s = wp.tid()
+    b = p % active.shape[0]
+    if active[b] == 0:
+        return
+    K = sc.candidates
+    first = (b * sc.surface.shape[0] + s) * K
+    total = f64(0.0)
+    for k in range(K):
+        i = first + k
+        if fr.face[i] >= 0:
+            u = vertex_pair_slip(sc, positions, p * sc.num_vertices, fr, b * sc.num_vertices, s, i)
+            total += friction_energy(u, fr.normal[i], fr.mu * fr.force[i], fr.slip)
+    if total > f64(0.0):
+        wp.atomic_add(energy, p, total)
+
+
+@wp.kernel
+def edge_friction_energy_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    sc: SelfContactArrays,
+    fr: FrictionPairs,
+    active: wp.array(dtype=wp.int32),
+    energy: wp.array(dtype=wp.float64),
+):
+    """energy[p] += the friction potential of the edge-edge friction pairs of surface edge e in state p."""
+    p, e = wp.tid()
+    b = p % active.shape[0]
+    if active[b] == 0:
+        return
+    K = sc.edge_candidates
+    first = (b * sc.edges.shape[0] + e) * K
+    total = f64(0.0)
+    for k in range(K):
+        i = first + k
+        if fr.edge[i] >= 0:
+            u = edge_pair_slip(sc, positions, p * sc.num_vertices, fr, b * sc.num_vertices, e, i)
+            total += friction_energy(u, fr.edge_normal[i], fr.mu * fr.edge_force[i], fr.slip)
+    if total > f64(0.0):
+        wp.atomic_add(energy, p, total)
+
+
+@wp.kernel
+def friction_gradient_hessian_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    sc: SelfContactArrays,
+    fr: FrictionPairs,
+    rows_per_problem: int,
+    blocks_per_problem: int,
+    couplings_per_problem: int,
+    coupling_offset: int,
+    active: wp.array(dtype=wp.int32),
+    free: wp.array(dtype=wp.vec3d),
+    gradient: wp.array(dtype=wp.vec3d),
+    hessian: wp.array(dtype=wp.mat33d),
+    coupling_rows: wp.array(dtype=wp.int32),
+    coupling_cols: wp.array(dtype=wp.int32),
+    coupling: wp.array(dtype=wp.mat33d),
+):
+    """Gradient and Hessian c c^T (x) M of the vertex-triangle friction pairs of surface vertex s, c = (1,
+    -w_0, -w_1, -w_2) (the lagged weights), M = :func:`friction_hessian`; the (vertex, corner) blocks to the
+    couplings from ``coupling_offset`` (3 per slot, as the barrier's)."""
+    b, s = wp.tid()
+    if active[b] == 0:
+        return
+    K = sc.candidates
+    first = (b * sc.surface.shape[0] + s) * K
+    o = b * sc.num_vertices
+    row = b * rows_per_problem
+    ob = b * blocks_per_problem
+    v = sc.surface[s]
+    for k in range(K):
+        i = first + k
+        if fr.face[i] >= 0:
+            u = vertex_pair_slip(sc, positions, o, fr, o, s, i)
+            ml = fr.mu * fr.force[i]
+            gu = friction_gradient(u, fr.normal[i], ml, fr.slip)
+            mm = friction_hessian(u, fr.normal[i], ml, fr.slip)
+            ids = sc.faces[fr.face[i]]
+            w = fr.weights[i]
+            wp.atomic_add(gradient, row + v, gu)
+            wp.atomic_add(hessian, ob + sc.vertex_block[s], mm)
+            slot = b * couplings_per_problem + coupling_offset + 3 * (s * K + k)
+            for j in range(3):
+                wp.atomic_add(gradient, row + ids[j], -w[j] * gu)
+                for l in range(3):
+                    wp.atomic_add(hessian, ob + sc.face_blocks[fr.face[i], 3 * j + l], (w[j] * w[l]) * mm)
+                coupling_rows[slot + j] = v
+                coupling_cols[slot + j] = ids[j]
+                coupling[slot + j] = masked_block(-w[j] * mm, free[v], free[ids[j]])
+
+
+@wp.kernel
+def edge_friction_gradient_hessian_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    sc: SelfContactArrays,
+    fr: FrictionPairs,
+    rows_per_problem: int,
+    blocks_per_problem: int,
+    couplings_per_problem: int,
+    coupling_offset: int,
+    active: wp.array(dtype=wp.int32),
+    free: wp.array(dtype=wp.vec3d),
+    gradient: wp.array(dtype=wp.vec3d),
+    hessian: wp.array(dtype=wp.mat33d),
+    coupling_rows: wp.array(dtype=wp.int32),
+    coupling_cols: wp.array(dtype=wp.int32),
+    coupling: wp.array(dtype=wp.mat33d),
+):
+    """As :func:`friction_gradient_hessian_kernel` for the edge-edge friction pairs of surface edge e, c =
+    (1 - s, s, -(1 - t), -t) (4 couplings per slot, after the vertex pairs' 3 S K)."""
+    b, e = wp.tid()
+    if active[b] == 0:
+        return
+    K = sc.edge_candidates
+    first = (b * sc.edges.shape[0] + e) * K
+    o = b * sc.num_vertices
+    row = b * rows_per_problem
+    ob = b * blocks_per_problem
+    ea = sc.edges[e]
+    for k in range(K):
+        i = first + k
+        g = fr.edge[i]
+        if g >= 0:
+            u = edge_pair_slip(sc, positions, o, fr, o, e, i)
+            ml = fr.mu * fr.edge_force[i]
+            gu = friction_gradient(u, fr.edge_normal[i], ml, fr.slip)
+            mm = friction_hessian(u, fr.edge_normal[i], ml, fr.slip)
+            eb = sc.edges[g]
+            st = fr.params[i]
+            ca = wp.vec2d(f64(1.0) - st[0], st[0])
+            cb = wp.vec2d(-(f64(1.0) - st[1]), -st[1])
+            slot = b * couplings_per_problem + coupling_offset + 3 * sc.surface.shape[0] * sc.candidates
+            slot += 4 * (e * K + k)
+            for j in range(2):
+                va = sc.surface[ea[j]]
+                vb = sc.surface[eb[j]]
+                wp.atomic_add(gradient, row + va, ca[j] * gu)
+                wp.atomic_add(gradient, row + vb, cb[j] * gu)
+                for l in range(2):
+                    wp.atomic_add(hessian, ob + sc.edge_blocks[e, 2 * j + l], (ca[j] * ca[l]) * mm)
+                    wp.atomic_add(hessian, ob + sc.edge_blocks[g, 2 * j + l], (cb[j] * cb[l]) * mm)
+                    wl = sc.surface[eb[l]]
+                    coupling_rows[slot + 2 * j + l] = va
+                    coupling_cols[slot + 2 * j + l] = wl
+                    coupling[slot + 2 * j + l] = masked_block((ca[j] * cb[l]) * mm, free[va], free[wl])
+
+
+@wp.kernel
+def friction_force_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    sc: SelfContactArrays,
+    fr: FrictionPairs,
+    force: wp.array(dtype=wp.vec3d),
+):
+    """Friction force of the vertex-triangle friction pairs of surface vertex s on every vertex (b N + v)."""
+    b, s = wp.tid()
+    K = sc.candidates
+    first = (b * sc.surface.shape[0] + s) * K
+    o = b * sc.num_vertices
+    for k in range(K):
+        i = first + k
+        if fr.face[i] >= 0:
+            u = vertex_pair_slip(sc, positions, o, fr, o, s, i)
+            gu = friction_gradient(u, fr.normal[i], fr.mu * fr.force[i], fr.slip)
+            wp.atomic_add(force, o + sc.surface[s], -gu)
+            ids = sc.faces[fr.face[i]]
+            for j in range(3):
+                wp.atomic_add(force, o + ids[j], fr.weights[i][j] * gu)
+
+
+@wp.kernel
+def edge_friction_force_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    sc: SelfContactArrays,
+    fr: FrictionPairs,
+    force: wp.array(dtype=wp.vec3d),
+):
+    """Friction force of the edge-edge friction pairs of surface edge e on every vertex (b N + v)."""
+    b, e = wp.tid()
+    K = sc.edge_candidates
+    first = (b * sc.edges.shape[0] + e) * K
+    o = b * sc.num_vertices
+    ea = sc.edges[e]
+    for k in range(K):
+        i = first + k
+        g = fr.edge[i]
+        if g >= 0:
+            u = edge_pair_slip(sc, positions, o, fr, o, e, i)
+            gu = friction_gradient(u, fr.edge_normal[i], fr.mu * fr.edge_force[i], fr.slip)
+            eb = sc.edges[g]
+            st = fr.params[i]
+            wp.atomic_add(force, o + sc.surface[ea[0]], -(f64(1.0) - st[0]) * gu)
+            wp.atomic_add(force, o + sc.surface[ea[1]], -st[0] * gu)
+            wp.atomic_add(force, o + sc.surface[eb[0]], (f64(1.0) - st[1]) * gu)
+            wp.atomic_add(force, o + sc.surface[eb[1]], st[1] * gu)
+
+
+@wp.func
+def lag_error(mu: f64, lam: f64, n: wp.vec3d, same: bool, lag: f64, lag_n: wp.vec3d) -> f64:
+    """Friction capacity error of one pair slot: mu (|lambda - lambda_lag| + lambda |n - n_lag|) where the
+    slot holds the lagged pair (or none, then and now), mu (lambda + lambda_lag) where another one."""
+    if same:
+        return mu * (wp.abs(lam - lag) + lam * wp.length(n - lag_n))
+    return mu * (lam + lag)
+
+
+@wp.kernel
+def friction_lag_error_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    sc: SelfContactArrays,
+    youngs: wp.array(dtype=wp.float64),
+    kappa: f64,
+    fr: FrictionPairs,
+    active: wp.array(dtype=wp.int32),
+    largest: wp.array(dtype=wp.float64),
+    total: wp.array(dtype=wp.float64),
+    capacity: wp.array(dtype=wp.float64),
+):
+    """Per problem: the largest and summed friction capacity error of the vertex-triangle pair slots of
+    surface vertex s (the current pairs, from the last :meth:`SelfContact.update_pairs`, against the
+    lagged), and the summed capacity mu lambda of the current pairs."""
+    b, s = wp.tid()
+    if active[b] == 0:
+        return
+    K = sc.candidates
+    first = (b * sc.surface.shape[0] + s) * K
+    kn = pair_stiffness(sc, kappa, youngs[b], s)
+    for k in range(K):
+        i = first + k
+        f = sc.pair[i]
+        lam = f64(0.0)
+        n = wp.vec3d()
+        if f >= 0:
+            d, r, w = vertex_triangle_distance(sc, positions, b * sc.num_vertices, s, f)
+            if d > f64(0.0) and d < sc.gap:
+                lam = barrier_force(d, kn, sc.gap)
+                n = r / d
+        same = fr.face[i] < 0 or fr.face[i] == f
+        lag = f64(0.0)
+        if fr.face[i] >= 0:
+            lag = fr.force[i]
+        err = lag_error(fr.mu, lam, n, same, lag, fr.normal[i])
+        if err > f64(0.0):
+            wp.atomic_max(largest, b, err)
+            wp.atomic_add(total, b, err)
+        if lam > f64(0.0):
+            wp.atomic_add(capacity, b, fr.mu * lam)
+
+
+@wp.kernel
+def edge_friction_lag_error_kernel(
+    positions: wp.array(dtype=wp.vec3d),
+    sc: SelfContactArrays,
+    youngs: wp.array(dtype=wp.float64),
+    kappa: f64,
+    fr: FrictionPairs,
+    active: wp.array(dtype=wp.int32),
+    largest: wp.array(dtype=wp.float64),
+    total: wp.array(dtype=wp.float64),
+    capacity: wp.array(dtype=wp.float64),
+):
+    """As :func:`friction_lag_error_kernel` for the edge-edge pair slots of surface edge e."""
+    b, e = wp.tid()
+    if active[b] == 0:
+        return
+    K = sc.edge_candidates
+    first = (b * sc.edges.shape[0] + e) * K
+    o = b * sc.num_vertices
+    for k in range(K):
+        i = first + k
+        g = sc.edge_pair[i]
+        lam = f64(0.0)
+        n = wp.vec3d()
+        if g >= 0:
+            d, r, st = edge_edge_distance(sc, positions, o, e, g)
+            if d > f64(0.0) and d < sc.gap:
+                m, dm_da, dm_db = edge_mollifier(sc, positions, o, e, g)
+                lam = m * barrier_force(d, edge_pair_stiffness(sc, kappa, youngs[b], e, g), sc.gap)
+                n = r / d
+        same = fr.edge[i] < 0 or fr.edge[i] == g
+        lag = f64(0.0)
+        if fr.edge[i] >= 0:
+            lag = fr.edge_force[i]
+        err = lag_error(fr.mu, lam, n, same, lag, fr.edge_normal[i])
+        if err > f64(0.0):
+            wp.atomic_max(largest, b, err)
+            wp.atomic_add(total, b, err)
+        if lam > f64(0.0):
+            wp.atomic_add(capacity, b, fr.mu * lam)
+
+
 @wp.kernel
 def surface_move_kernel(
     direction: wp.array(dtype=wp.vec3d),
@@ -1287,9 +1799,17 @@ class SelfContact:
     problem over the deformed surface, the vertex-triangle pairs (and with model "barrier" the edge-edge
     pairs), and the launches of the kernels above."""
 
-    def __init__(self, mesh, pattern, batch_size: int, size: float, device, model: str = "prism"):
+    def __init__(
+        self, mesh, pattern, batch_size: int, size: float, device, model: str = "prism", friction: float = 0.0
+    ):
         if model not in SELF_CONTACT_MODELS:
             raise ValueError(f"self-contact model must be one of {SELF_CONTACT_MODELS}, got {model!r}")
+        if not (np.isfinite(friction) and friction >= 0):
+            raise ValueError(f"self-contact friction coefficient must be finite and >= 0, got {friction!r}")
+        if friction > 0 and model != "barrier":
+            raise ValueError(f"self-contact friction needs self-contact model 'barrier', got {model!r}")
+        #: friction coefficient mu of the surface on itself (model "barrier"; 0: frictionless)
+        self.friction = float(friction)
         self.model = model
         self.barrier = barrier = model == "barrier"
         self.batch_size = B = int(batch_size)
@@ -1361,8 +1881,25 @@ class SelfContact:
         self._mesh_ids = wp.array([m.id for m in self._meshes], dtype=wp.uint64, device=dev)
         self._force = wp.zeros(B * N, dtype=wp.vec3d, device=dev)
         #: coupling blocks per problem: 3 per vertex pair slot (one slot per vertex; "barrier": K per vertex
-        #: and 4 per edge pair slot, KE per edge)
-        self.couplings_per_problem = C = 3 * S * K + 4 * E * KE if barrier else 3 * S
+        #: and 4 per edge pair slot, KE per edge; with friction as many again for the friction pairs)
+        self.couplings_per_problem = C = (
+            (3 * S * K + 4 * E * KE) * (2 if friction > 0 else 1) if barrier else 3 * S
+        )
+        fr = FrictionPairs()
+        friction_slots, edge_friction_slots = (B * S * K, B * E * KE) if friction > 0 else (1, 1)
+        fr.reference = wp.zeros(B * N if friction > 0 else 1, dtype=wp.vec3d, device=dev)
+        fr.face = wp.full(friction_slots, -1, dtype=wp.int32, device=dev)
+        fr.weights = wp.zeros(friction_slots, dtype=wp.vec3d, device=dev)
+        fr.normal = wp.zeros(friction_slots, dtype=wp.vec3d, device=dev)
+        fr.force = wp.zeros(friction_slots, dtype=wp.float64, device=dev)
+        fr.edge = wp.full(edge_friction_slots, -1, dtype=wp.int32, device=dev)
+        fr.params = wp.zeros(edge_friction_slots, dtype=wp.vec2d, device=dev)
+        fr.edge_normal = wp.zeros(edge_friction_slots, dtype=wp.vec3d, device=dev)
+        fr.edge_force = wp.zeros(edge_friction_slots, dtype=wp.float64, device=dev)
+        fr.mu = self.friction
+        #: the stick zone eps of the friction pairs [m] (``SELF_CONTACT_FRICTION_SLIP`` h)
+        self.slip = fr.slip = SELF_CONTACT_FRICTION_SLIP * float(size)
+        self._friction = fr
         #: the (vertex, vertex) Hessian blocks of the last assembly outside the block pattern (B C,)
         self.coupling = (
             wp.zeros(B * C, dtype=wp.int32, device=dev),
@@ -1444,6 +1981,17 @@ class SelfContact:
             wp.launch(
                 edge_barrier_energy_kernel, dim=(states, self.num_edges), inputs=inputs, device=self.device
             )
+            if self.friction > 0:
+                inputs = [positions, self.arrays, self._friction, active, energy]
+                wp.launch(
+                    friction_energy_kernel, dim=(states, self.num_surface), inputs=inputs, device=self.device
+                )
+                wp.launch(
+                    edge_friction_energy_kernel,
+                    dim=(states, self.num_edges),
+                    inputs=inputs,
+                    device=self.device,
+                )
             return
         wp.launch(
             self_contact_energy_kernel,
@@ -1478,6 +2026,14 @@ class SelfContact:
                 outputs=outputs,
                 device=dev,
             )
+            if self.friction > 0:
+                C = self.couplings_per_problem
+                inputs = [positions, self.arrays, self._friction, rows, blocks, C, C // 2, active, free]
+                for kernel, dim in (
+                    (friction_gradient_hessian_kernel, self.num_surface),
+                    (edge_friction_gradient_hessian_kernel, self.num_edges),
+                ):
+                    wp.launch(kernel, dim=(self.batch_size, dim), inputs=inputs, outputs=outputs, device=dev)
             return
         wp.launch(
             self_contact_gradient_hessian_kernel,
@@ -1496,6 +2052,42 @@ class SelfContact:
             outputs=[gradient, hessian, *self.coupling],
             device=self.device,
         )
+
+    def lag_friction(self, positions, youngs, kappa, active, reference: bool = True) -> None:
+        """Model "barrier" with friction: lag the friction of the problems where ``active`` (B,) is 1 at
+        ``positions`` (B N, with the pairs of the last :meth:`update_pairs` there): the barrier pairs closer
+        than d^ become the friction pairs, with their normal forces, normals and closest points frozen
+        (IPC's lagged friction). ``reference``: the slips are measured from ``positions`` on (the start of a
+        load increment); else from the last reference (a re-lag at an iterate of the increment)."""
+        if self.friction <= 0:
+            return
+        B, dev, sc, fr = self.batch_size, self.device, self.arrays, self._friction
+        inputs = [positions, sc, youngs, float(kappa), active, fr]
+        wp.launch(lag_friction_kernel, dim=(B, self.num_surface), inputs=inputs, device=dev)
+        wp.launch(lag_edge_friction_kernel, dim=(B, self.num_edges), inputs=inputs, device=dev)
+        if reference:
+            inputs = [positions, sc, active, fr]
+            wp.launch(lag_reference_kernel, dim=(B, sc.num_vertices), inputs=inputs, device=dev)
+
+    def friction_lag_error(self, positions, youngs, kappa, active, stats) -> None:
+        """Model "barrier" with friction: into ``stats`` (3, B), zeroed, per problem where ``active`` is 1:
+        the largest and the summed friction capacity error of the lagged pairs against those at
+        ``positions`` (their normal forces and normals; the pairs of the last :meth:`update_pairs`, which
+        must be at ``positions``), and the current summed capacity mu lambda."""
+        B, dev = self.batch_size, self.device
+        inputs = [
+            positions,
+            self.arrays,
+            youngs,
+            float(kappa),
+            self._friction,
+            active,
+            stats[0],
+            stats[1],
+            stats[2],
+        ]
+        wp.launch(friction_lag_error_kernel, dim=(B, self.num_surface), inputs=inputs, device=dev)
+        wp.launch(edge_friction_lag_error_kernel, dim=(B, self.num_edges), inputs=inputs, device=dev)
 
     def step_bound(self, positions, direction, rows_per_problem: int, active) -> np.ndarray:
         """Model "barrier": (B,) the step length along ``direction`` (B R rows, the object's vertices first)
@@ -1542,6 +2134,22 @@ class SelfContact:
                 outputs=[self._force],
                 device=dev,
             )
+            if self.friction > 0:
+                inputs = [positions, self.arrays, self._friction]
+                wp.launch(
+                    friction_force_kernel,
+                    dim=(B, self.num_surface),
+                    inputs=inputs,
+                    outputs=[self._force],
+                    device=dev,
+                )
+                wp.launch(
+                    edge_friction_force_kernel,
+                    dim=(B, self.num_edges),
+                    inputs=inputs,
+                    outputs=[self._force],
+                    device=dev,
+                )
             return
         wp.launch(
             self_contact_force_kernel,

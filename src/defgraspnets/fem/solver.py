@@ -406,6 +406,13 @@ class SolverOptions:
             ring's four CPU ramps all reach 15 N ("prism": two), at ~1.5-1.8x the time per Newton
             iteration (``benchmarks/fem_self_contact_barrier_s50.md``). Refuses a surface within 0.05 h of
             itself at rest.
+        self_contact_friction: mu, Coulomb friction of the surface on itself (model "barrier" only; 0, the
+            default: frictionless, bit for bit as before): IPC's lagged friction (``self_contact.py``): the
+            barrier pairs closer than d^ at an increment's start, slips measured from there, a smoothed
+            Coulomb potential whose force rises with the tangential slip to mu lambda over
+            ``SELF_CONTACT_FRICTION_SLIP`` = 0.01 h; the normal forces re-lagged like the rigid contact's and
+            checked for consistency at convergence (re-lagged until every pair's capacity error is below
+            the tolerance).
     """
 
     contact_stiffness: float = 1000.0
@@ -447,6 +454,7 @@ class SolverOptions:
     contact_subdivisions: int = 1
     self_contact: float = 0.0
     self_contact_model: str = "prism"
+    self_contact_friction: float = 0.0
 
     def __post_init__(self):
         if self.linear_solver not in LINEAR_SOLVERS:
@@ -475,6 +483,25 @@ class SolverOptions:
         if self.self_contact_model not in SELF_CONTACT_MODELS:
             raise ValueError(
                 f"SolverOptions.self_contact_model must be one of {', '.join(SELF_CONTACT_MODELS)}, got "
+                f"{self.self_contact_model!r}"
+            )
+        mu = self.self_contact_friction
+        if (
+            not (
+                isinstance(mu, (int, float, np.integer, np.floating))
+                and not isinstance(mu, bool)
+                and np.isfinite(mu)
+            )
+            or mu < 0
+        ):
+            raise ValueError(
+                f"SolverOptions.self_contact_friction must be a finite friction coefficient >= 0 (0: "
+                f"frictionless), got {mu!r}"
+            )
+        if mu > 0 and (sc == 0 or self.self_contact_model != "barrier"):
+            raise ValueError(
+                "SolverOptions.self_contact_friction needs self_contact > 0 and self_contact_model 'barrier' "
+                f"(the friction pairs are the barrier's), got self_contact={sc!r}, self_contact_model="
                 f"{self.self_contact_model!r}"
             )
         if sc > 0 and self.linear_solver not in ("auto", *SELF_CONTACT_SOLVERS):
@@ -933,7 +960,15 @@ class QuasiStaticSolver:
         #: self-contact of the object's surface (SolverOptions.self_contact > 0), else None
         model = self.options.self_contact_model
         self._self_contact = (
-            SelfContact(mesh, self.pattern, B, self.contact_length, dev, model=model)
+            SelfContact(
+                mesh,
+                self.pattern,
+                B,
+                self.contact_length,
+                dev,
+                model=model,
+                friction=self.options.self_contact_friction,
+            )
             if self.options.self_contact > 0
             else None
         )
@@ -1912,11 +1947,22 @@ class QuasiStaticSolver:
         """Problems in ``mask`` whose friction capacities, computed from lagged normal forces, are not
         consistent with their current normal forces: some contact's capacity error ``mu (|N - N_lag| +
         N |n - n_lag|)`` exceeds ``tol`` and the summed error exceeds ``friction_rtol sum mu N``. Reduced per
-        problem on the device: only three numbers per problem come back."""
-        if not self.num_bodies or not np.any(self._friction[mask] > 0):
-            return np.zeros(self.batch_size, dtype=bool)
-        self._contact_state(self._positions, self._travel)
+        problem on the device: only three numbers per problem come back. With self-contact friction its
+        friction pairs are checked the same way (their lagged normal forces against the barrier's now)."""
+        stale = np.zeros(self.batch_size, dtype=bool)
+        sc = self._self_contact
         stats = self._friction_stats
+        if sc is not None and sc.friction > 0 and mask.any():
+            sc.update_pairs(self._positions)
+            stats.zero_()
+            sc.friction_lag_error(
+                self._positions, self._youngs, self._self_contact_law()[0], self._active_array(mask), stats
+            )
+            largest, total, capacity = stats.numpy()
+            stale |= mask & (largest > tol) & (total > self.options.friction_rtol * capacity)
+        if not self.num_bodies or not np.any(self._friction[mask] > 0):
+            return stale
+        self._contact_state(self._positions, self._travel)
         stats.zero_()
         largest, total, capacity = stats[0], stats[1], stats[2]
         wp.launch(
@@ -1938,7 +1984,7 @@ class QuasiStaticSolver:
             device=self.device,
         )
         largest, total, capacity = stats.numpy()
-        return mask & (largest > tol) & (total > self.options.friction_rtol * capacity)
+        return stale | (mask & (largest > tol) & (total > self.options.friction_rtol * capacity))
 
     def _relag_friction(self, mask: np.ndarray, accelerate: np.ndarray | None = None):
         """Lagged normal forces and normals <- current ones, for the problems in ``mask``.
@@ -1952,6 +1998,14 @@ class QuasiStaticSolver:
         load; the relaxation extrapolates that geometric sequence towards its limit. Runs on the device;
         only the two dot products per accelerated problem come back to the host.
         """
+        sc = self._self_contact
+        if sc is not None and sc.friction > 0 and mask.any():
+            # the self-contact's friction pairs and normal forces from this iterate (slips from the
+            # increment's start, as the rigid contact's stick anchors)
+            sc.update_pairs(self._positions)
+            sc.lag_friction(
+                self._positions, self._youngs, self._self_contact_law()[0], self._active_array(mask), False
+            )
         if not self.num_bodies or not np.any(self._friction[mask] > 0):
             return
         self._contact_state(self._positions, self._travel)
@@ -3252,6 +3306,8 @@ class QuasiStaticSolver:
             self._difference_rows(self._q, self._q_ref, m, self._q_trial)  # the path (scratch rows)
             bound = sc.step_bound(self._positions_ref, self._q_trial, self.rows_per_problem, m)
             fallback |= mask & (bound < 1.0)
+            # the friction of the increment: lagged at its start, the last converged state
+            sc.lag_friction(self._positions_ref, self._youngs, self._self_contact_law()[0], m)
         elif sc is not None:  # the predicted state's penetrations (its forces are not needed)
             self._unpack(self._q, self._positions, self._travel)
             penetration = sc.penetration(self._positions, self._youngs, *self._self_contact_law())
