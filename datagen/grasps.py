@@ -85,6 +85,7 @@ def main(cfg: DictConfig) -> None:
             stabilization_relax_decay=cfg.stabilization_relax_decay,
             self_contact=cfg.self_contact,
             self_contact_model=cfg.self_contact_model,
+            self_contact_friction=cfg.self_contact_friction,
         ),
         reject_inverted=cfg.reject_inverted,
         overwrite=cfg.overwrite,
