@@ -1295,6 +1295,14 @@ def _slid_block(mu: float, slides, press: float = 2e-3):
         np.testing.assert_allclose(force[0].sum(axis=0), 0.0, atol=1e-9 * np.abs(force).max())
         support = eq.reaction_force[0, z < 1e-9].sum(axis=0)
         np.testing.assert_allclose(support, pushed, rtol=1e-4, atol=1e-6 * pushed[2])
+        if mu > 0:  # accepted with its own normal forces: the lagged ones are the converged state's
+            sc, stats = solver._self_contact, wp.zeros((3, 1), dtype=wp.float64, device="cpu")
+            sc.update_pairs(solver._positions)
+            active = wp.array([1], dtype=wp.int32, device="cpu")
+            sc.friction_lag_error(solver._positions, solver._youngs, 1000.0, active, stats)
+            largest, total, capacity = stats.numpy()[:, 0]
+            assert capacity > 0.2 * mu * pushed[2]
+            assert total < 1e-3 * capacity
         out.append(pushed)
     return out
 

@@ -1574,9 +1574,11 @@ def friction_lag_error_kernel(
                 n = r / d
         same = fr.face[i] < 0 or fr.face[i] == f
         lag = f64(0.0)
+        lag_n = n  # a pair that was not lagged: its whole capacity is the error
         if fr.face[i] >= 0:
             lag = fr.force[i]
-        err = lag_error(fr.mu, lam, n, same, lag, fr.normal[i])
+            lag_n = fr.normal[i]
+        err = lag_error(fr.mu, lam, n, same, lag, lag_n)
         if err > f64(0.0):
             wp.atomic_max(largest, b, err)
             wp.atomic_add(total, b, err)
@@ -1616,9 +1618,11 @@ def edge_friction_lag_error_kernel(
                 n = r / d
         same = fr.edge[i] < 0 or fr.edge[i] == g
         lag = f64(0.0)
+        lag_n = n
         if fr.edge[i] >= 0:
             lag = fr.edge_force[i]
-        err = lag_error(fr.mu, lam, n, same, lag, fr.edge_normal[i])
+            lag_n = fr.edge_normal[i]
+        err = lag_error(fr.mu, lam, n, same, lag, lag_n)
         if err > f64(0.0):
             wp.atomic_max(largest, b, err)
             wp.atomic_add(total, b, err)
