@@ -305,18 +305,15 @@ class PairLists:
 @wp.struct
 class FrictionPairs:
     """Model "barrier" with friction: each problem's friction pairs, lagged at the start of its load increment
-    (IPC's lagged friction): the barrier pairs active there, with their normal force, normal and closest
-    points, and the positions they slip from."""
+    (IPC's lagged friction): the barrier pairs active there (slots numbered as in :func:`barrier_pair`), with
+    their normal force, normal and coefficients, and the positions they slip from."""
 
     reference: wp.array(dtype=wp.vec3d)  # (B N,) positions at the lag [m]
-    face: wp.array(dtype=wp.int32)  # (B S K,) triangle of each vertex pair slot, -1: none
-    weights: wp.array(dtype=wp.vec3d)  # (B S K,) barycentric weights of its closest point
-    normal: wp.array(dtype=wp.vec3d)  # (B S K,) unit normal (x_v - c) / d
-    force: wp.array(dtype=wp.float64)  # (B S K,) normal force lambda [N]
-    edge: wp.array(dtype=wp.int32)  # (B E KE,) other edge of each edge pair slot, -1: none
-    params: wp.array(dtype=wp.vec2d)  # (B E KE,) closest points' parameters (s, t)
-    edge_normal: wp.array(dtype=wp.vec3d)  # (B E KE,) unit normal (p - q) / d
-    edge_force: wp.array(dtype=wp.float64)  # (B E KE,) normal force lambda (mollified) [N]
+    other: wp.array(dtype=wp.int32)  # (B P,) the pair's triangle or other edge, -1: no friction pair
+    coefficients: wp.array(dtype=wp.vec4d)  # (B P,) c of its four points (closest points' weights)
+    normal: wp.array(dtype=wp.vec3d)  # (B P,) unit normal, from the second group to the first
+    force: wp.array(dtype=wp.float64)  # (B P,) normal force lambda [N]
+    slots: int  # P = S K + E KE
     mu: f64  # friction coefficient
     slip: f64  # stick zone eps [m]
 
@@ -1164,6 +1161,79 @@ def edge_barrier_force_kernel(
 
 
 # ---------------------------------------------------------------- model "barrier": lagged friction
+# A friction pair is one of the barrier's pair slots, both kinds in one numbering per problem: slot j < S K is
+# vertex-triangle slot k of surface vertex s (j = s K + k), slot S K + e KE + k edge-edge slot k of surface
+# edge e. Either way four points with coefficients c: (v, f_0, f_1, f_2; 1, -w) or (a_0, a_1, b_0, b_1;
+# 1 - s, s, -(1 - t), -t), in two groups (v | f's corners, e's ends | g's ends): the Hessian blocks within a
+# group lie in the FEM block pattern (tet edges), those across the groups are couplings.
+@wp.func
+def barrier_pair(
+    sc: SelfContactArrays, positions: wp.array(dtype=wp.vec3d), young: f64, kappa: f64, b: int, j: int
+):
+    """The barrier pair of slot j of problem b at ``positions`` (from the last pairing's lists): its other
+    feature (triangle or edge; -1 where the slot is empty or its pair farther than d^), normal force
+    lambda (mollified for edges), unit normal and coefficients c."""
+    SK = sc.surface.shape[0] * sc.candidates
+    o = b * sc.num_vertices
+    other = int(-1)  # noqa: UP018
+    lam = f64(0.0)
+    n = wp.vec3d()
+    c = wp.vec4d()
+    if j < SK:
+        s = j // sc.candidates
+        f = sc.pair[b * SK + j]
+        if f >= 0:
+            d, r, w = vertex_triangle_distance(sc, positions, o, s, f)
+            if d > f64(0.0) and d < sc.gap:
+                other = f
+                lam = barrier_force(d, pair_stiffness(sc, kappa, young, s), sc.gap)
+                n = r / d
+                c = wp.vec4d(f64(1.0), -w[0], -w[1], -w[2])
+    else:
+        je = j - SK
+        e = je // sc.edge_candidates
+        g = sc.edge_pair[b * sc.edges.shape[0] * sc.edge_candidates + je]
+        if g >= 0:
+            d, r, st = edge_edge_distance(sc, positions, o, e, g)
+            if d > f64(0.0) and d < sc.gap:
+                m, dm_da, dm_db = edge_mollifier(sc, positions, o, e, g)
+                other = g
+                lam = m * barrier_force(d, edge_pair_stiffness(sc, kappa, young, e, g), sc.gap)
+                n = r / d
+                c = wp.vec4d(f64(1.0) - st[0], st[0], -(f64(1.0) - st[1]), -st[1])
+    return other, lam, n, c
+
+
+@wp.func
+def pair_points(sc: SelfContactArrays, j: int, other: int) -> wp.vec4i:
+    """Mesh vertices of friction slot j's four points (its pair with feature ``other``)."""
+    SK = sc.surface.shape[0] * sc.candidates
+    if j < SK:
+        ids = sc.faces[other]
+        return wp.vec4i(sc.surface[j // sc.candidates], ids[0], ids[1], ids[2])
+    ea = sc.edges[(j - SK) // sc.edge_candidates]
+    eb = sc.edges[other]
+    return wp.vec4i(sc.surface[ea[0]], sc.surface[ea[1]], sc.surface[eb[0]], sc.surface[eb[1]])
+
+
+@wp.func
+def pair_block(sc: SelfContactArrays, j: int, other: int, i: int, l: int) -> int:
+    """A problem's BSR block of points i and l of friction slot j, -1 for two points across its groups (a
+    coupling)."""
+    SK = sc.surface.shape[0] * sc.candidates
+    if j < SK:
+        if i == 0 and l == 0:
+            return sc.vertex_block[j // sc.candidates]
+        if i > 0 and l > 0:
+            return sc.face_blocks[other, 3 * (i - 1) + l - 1]
+        return -1
+    if i < 2 and l < 2:
+        return sc.edge_blocks[(j - SK) // sc.edge_candidates, 2 * i + l]
+    if i > 1 and l > 1:
+        return sc.edge_blocks[other, 2 * (i - 2) + l - 2]
+    return -1
+
+
 @wp.func
 def friction_energy(u: wp.vec3d, n: wp.vec3d, mu_lambda: f64, eps: f64) -> f64:
     """D = mu lambda F(y) of a pair whose relative motion since the lag is u, y = |(I - n n^T) u| its
@@ -1202,6 +1272,18 @@ def friction_hessian(u: wp.vec3d, n: wp.vec3d, mu_lambda: f64, eps: f64) -> wp.m
     return (mu_lambda / y) * (P - wp.outer(t, t) / (y * y))
 
 
+@wp.func
+def friction_slip(
+    positions: wp.array(dtype=wp.vec3d), o: int, fr: FrictionPairs, ref: int, points: wp.vec4i, c: wp.vec4d
+) -> wp.vec3d:
+    """u = sum_i c_i (x_i - X_i): a pair's relative motion since the lag (state at offset o, its problem's
+    reference at ref), with the lagged coefficients."""
+    u = wp.vec3d()
+    for i in range(4):
+        u += c[i] * (positions[o + points[i]] - fr.reference[ref + points[i]])
+    return u
+
+
 @wp.kernel
 def lag_friction_kernel(
     positions: wp.array(dtype=wp.vec3d),
@@ -1211,57 +1293,17 @@ def lag_friction_kernel(
     active: wp.array(dtype=wp.int32),
     fr: FrictionPairs,
 ):
-    """Lag the friction of the active problems at ``positions``: every vertex-triangle pair of surface vertex
-    s closer than d^, with its normal force, normal and closest point's weights; the other slots none."""
-    b, s = wp.tid()
+    """Lag the friction of the active problems at ``positions``: slot j's barrier pair, if closer than d^,
+    with its normal force, normal and coefficients; else none."""
+    b, j = wp.tid()
     if active[b] == 0:
         return
-    K = sc.candidates
-    first = (b * sc.surface.shape[0] + s) * K
-    kn = pair_stiffness(sc, kappa, youngs[b], s)
-    for k in range(K):
-        i = first + k
-        fr.face[i] = -1
-        f = sc.pair[i]
-        if f >= 0:
-            d, r, w = vertex_triangle_distance(sc, positions, b * sc.num_vertices, s, f)
-            if d > f64(0.0) and d < sc.gap:
-                fr.face[i] = f
-                fr.weights[i] = w
-                fr.normal[i] = r / d
-                fr.force[i] = barrier_force(d, kn, sc.gap)
-
-
-@wp.kernel
-def lag_edge_friction_kernel(
-    positions: wp.array(dtype=wp.vec3d),
-    sc: SelfContactArrays,
-    youngs: wp.array(dtype=wp.float64),
-    kappa: f64,
-    active: wp.array(dtype=wp.int32),
-    fr: FrictionPairs,
-):
-    """As :func:`lag_friction_kernel` for the edge-edge pairs of surface edge e (mollified normal force)."""
-    b, e = wp.tid()
-    if active[b] == 0:
-        return
-    K = sc.edge_candidates
-    first = (b * sc.edges.shape[0] + e) * K
-    o = b * sc.num_vertices
-    for k in range(K):
-        i = first + k
-        fr.edge[i] = -1
-        g = sc.edge_pair[i]
-        if g >= 0:
-            d, r, st = edge_edge_distance(sc, positions, o, e, g)
-            if d > f64(0.0) and d < sc.gap:
-                m, dm_da, dm_db = edge_mollifier(sc, positions, o, e, g)
-                fr.edge[i] = g
-                fr.params[i] = st
-                fr.edge_normal[i] = r / d
-                fr.edge_force[i] = m * barrier_force(
-                    d, edge_pair_stiffness(sc, kappa, youngs[b], e, g), sc.gap
-                )
+    i = b * fr.slots + j
+    other, lam, n, c = barrier_pair(sc, positions, youngs[b], kappa, b, j)
+    fr.other[i] = other
+    fr.force[i] = lam
+    fr.normal[i] = n
+    fr.coefficients[i] = c
 
 
 @wp.kernel
@@ -1279,52 +1321,6 @@ def lag_reference_kernel(
     fr.reference[i] = positions[i]
 
 
-@wp.func
-def moved(positions: wp.array(dtype=wp.vec3d), o: int, fr: FrictionPairs, ref: int, v: int) -> wp.vec3d:
-    """How far vertex v moved since the lag (state at offset o, its problem's reference at ref)."""
-    return positions[o + v] - fr.reference[ref + v]
-
-
-@wp.func
-def vertex_pair_slip(
-    sc: SelfContactArrays,
-    positions: wp.array(dtype=wp.vec3d),
-    o: int,
-    fr: FrictionPairs,
-    ref: int,
-    s: int,
-    i: int,
-) -> wp.vec3d:
-    """Relative motion since the lag of surface vertex s and its friction pair slot i's closest point (the
-    lagged weights): u = dx_v - sum_j w_j dx_j."""
-    ids = sc.faces[fr.face[i]]
-    w = fr.weights[i]
-    u = moved(positions, o, fr, ref, sc.surface[s])
-    for j in range(3):
-        u -= w[j] * moved(positions, o, fr, ref, ids[j])
-    return u
-
-
-@wp.func
-def edge_pair_slip(
-    sc: SelfContactArrays,
-    positions: wp.array(dtype=wp.vec3d),
-    o: int,
-    fr: FrictionPairs,
-    ref: int,
-    e: int,
-    i: int,
-) -> wp.vec3d:
-    """Relative motion since the lag of edge e's and slot i's other edge's closest points (lagged (s, t))."""
-    ea = sc.edges[e]
-    eb = sc.edges[fr.edge[i]]
-    st = fr.params[i]
-    u = (f64(1.0) - st[0]) * moved(positions, o, fr, ref, sc.surface[ea[0]])
-    u += st[0] * moved(positions, o, fr, ref, sc.surface[ea[1]])
-    u -= (f64(1.0) - st[1]) * moved(positions, o, fr, ref, sc.surface[eb[0]])
-    return u - st[1] * moved(positions, o, fr, ref, sc.surface[eb[1]])
-
-
 @wp.kernel
 def friction_energy_kernel(
     positions: wp.array(dtype=wp.vec3d),
@@ -1333,47 +1329,15 @@ def friction_energy_kernel(
     active: wp.array(dtype=wp.int32),
     energy: wp.array(dtype=wp.float64),
 ):
-    """energy[p] += the friction potential of the vertex-triangle friction pairs of surface vertex s in
-    trial state p."""
-    p, s = wp.tid()
+    """energy[p] += the friction potential of friction slot j in trial state p."""
+    p, j = wp.tid()
     b = p % active.shape[0]
-    if active[b] == 0:
+    i = b * fr.slots + j
+    if active[b] == 0 or fr.other[i] < 0:
         return
-    K = sc.candidates
-    first = (b * sc.surface.shape[0] + s) * K
-    total = f64(0.0)
-    for k in range(K):
-        i = first + k
-        if fr.face[i] >= 0:
-            u = vertex_pair_slip(sc, positions, p * sc.num_vertices, fr, b * sc.num_vertices, s, i)
-            total += friction_energy(u, fr.normal[i], fr.mu * fr.force[i], fr.slip)
-    if total > f64(0.0):
-        wp.atomic_add(energy, p, total)
-
-
-@wp.kernel
-def edge_friction_energy_kernel(
-    positions: wp.array(dtype=wp.vec3d),
-    sc: SelfContactArrays,
-    fr: FrictionPairs,
-    active: wp.array(dtype=wp.int32),
-    energy: wp.array(dtype=wp.float64),
-):
-    """energy[p] += the friction potential of the edge-edge friction pairs of surface edge e in state p."""
-    p, e = wp.tid()
-    b = p % active.shape[0]
-    if active[b] == 0:
-        return
-    K = sc.edge_candidates
-    first = (b * sc.edges.shape[0] + e) * K
-    total = f64(0.0)
-    for k in range(K):
-        i = first + k
-        if fr.edge[i] >= 0:
-            u = edge_pair_slip(sc, positions, p * sc.num_vertices, fr, b * sc.num_vertices, e, i)
-            total += friction_energy(u, fr.edge_normal[i], fr.mu * fr.edge_force[i], fr.slip)
-    if total > f64(0.0):
-        wp.atomic_add(energy, p, total)
+    points = pair_points(sc, j, fr.other[i])
+    u = friction_slip(positions, p * sc.num_vertices, fr, b * sc.num_vertices, points, fr.coefficients[i])
+    wp.atomic_add(energy, p, friction_energy(u, fr.normal[i], fr.mu * fr.force[i], fr.slip))
 
 
 @wp.kernel
@@ -1393,93 +1357,35 @@ def friction_gradient_hessian_kernel(
     coupling_cols: wp.array(dtype=wp.int32),
     coupling: wp.array(dtype=wp.mat33d),
 ):
-    """Gradient and Hessian c c^T (x) M of the vertex-triangle friction pairs of surface vertex s, c = (1,
-    -w_0, -w_1, -w_2) (the lagged weights), M = :func:`friction_hessian`; the (vertex, corner) blocks to the
-    couplings from ``coupling_offset`` (3 per slot, as the barrier's)."""
-    b, s = wp.tid()
-    if active[b] == 0:
+    """Gradient c_i dD/du of friction slot j on its points and Hessian c c^T (x) M, M =
+    :func:`friction_hessian`: the blocks within its groups into the pattern, those across them (3 or 4) to
+    the couplings from ``coupling_offset`` (4 per slot)."""
+    b, j = wp.tid()
+    i = b * fr.slots + j
+    if active[b] == 0 or fr.other[i] < 0:
         return
-    K = sc.candidates
-    first = (b * sc.surface.shape[0] + s) * K
     o = b * sc.num_vertices
+    points = pair_points(sc, j, fr.other[i])
+    c = fr.coefficients[i]
+    u = friction_slip(positions, o, fr, o, points, c)
+    ml = fr.mu * fr.force[i]
+    gu = friction_gradient(u, fr.normal[i], ml, fr.slip)
+    mm = friction_hessian(u, fr.normal[i], ml, fr.slip)
     row = b * rows_per_problem
     ob = b * blocks_per_problem
-    v = sc.surface[s]
-    for k in range(K):
-        i = first + k
-        if fr.face[i] >= 0:
-            u = vertex_pair_slip(sc, positions, o, fr, o, s, i)
-            ml = fr.mu * fr.force[i]
-            gu = friction_gradient(u, fr.normal[i], ml, fr.slip)
-            mm = friction_hessian(u, fr.normal[i], ml, fr.slip)
-            ids = sc.faces[fr.face[i]]
-            w = fr.weights[i]
-            wp.atomic_add(gradient, row + v, gu)
-            wp.atomic_add(hessian, ob + sc.vertex_block[s], mm)
-            slot = b * couplings_per_problem + coupling_offset + 3 * (s * K + k)
-            for j in range(3):
-                wp.atomic_add(gradient, row + ids[j], -w[j] * gu)
-                for l in range(3):
-                    wp.atomic_add(hessian, ob + sc.face_blocks[fr.face[i], 3 * j + l], (w[j] * w[l]) * mm)
-                coupling_rows[slot + j] = v
-                coupling_cols[slot + j] = ids[j]
-                coupling[slot + j] = masked_block(-w[j] * mm, free[v], free[ids[j]])
-
-
-@wp.kernel
-def edge_friction_gradient_hessian_kernel(
-    positions: wp.array(dtype=wp.vec3d),
-    sc: SelfContactArrays,
-    fr: FrictionPairs,
-    rows_per_problem: int,
-    blocks_per_problem: int,
-    couplings_per_problem: int,
-    coupling_offset: int,
-    active: wp.array(dtype=wp.int32),
-    free: wp.array(dtype=wp.vec3d),
-    gradient: wp.array(dtype=wp.vec3d),
-    hessian: wp.array(dtype=wp.mat33d),
-    coupling_rows: wp.array(dtype=wp.int32),
-    coupling_cols: wp.array(dtype=wp.int32),
-    coupling: wp.array(dtype=wp.mat33d),
-):
-    """As :func:`friction_gradient_hessian_kernel` for the edge-edge friction pairs of surface edge e, c =
-    (1 - s, s, -(1 - t), -t) (4 couplings per slot, after the vertex pairs' 3 S K)."""
-    b, e = wp.tid()
-    if active[b] == 0:
-        return
-    K = sc.edge_candidates
-    first = (b * sc.edges.shape[0] + e) * K
-    o = b * sc.num_vertices
-    row = b * rows_per_problem
-    ob = b * blocks_per_problem
-    ea = sc.edges[e]
-    for k in range(K):
-        i = first + k
-        g = fr.edge[i]
-        if g >= 0:
-            u = edge_pair_slip(sc, positions, o, fr, o, e, i)
-            ml = fr.mu * fr.edge_force[i]
-            gu = friction_gradient(u, fr.edge_normal[i], ml, fr.slip)
-            mm = friction_hessian(u, fr.edge_normal[i], ml, fr.slip)
-            eb = sc.edges[g]
-            st = fr.params[i]
-            ca = wp.vec2d(f64(1.0) - st[0], st[0])
-            cb = wp.vec2d(-(f64(1.0) - st[1]), -st[1])
-            slot = b * couplings_per_problem + coupling_offset + 3 * sc.surface.shape[0] * sc.candidates
-            slot += 4 * (e * K + k)
-            for j in range(2):
-                va = sc.surface[ea[j]]
-                vb = sc.surface[eb[j]]
-                wp.atomic_add(gradient, row + va, ca[j] * gu)
-                wp.atomic_add(gradient, row + vb, cb[j] * gu)
-                for l in range(2):
-                    wp.atomic_add(hessian, ob + sc.edge_blocks[e, 2 * j + l], (ca[j] * ca[l]) * mm)
-                    wp.atomic_add(hessian, ob + sc.edge_blocks[g, 2 * j + l], (cb[j] * cb[l]) * mm)
-                    wl = sc.surface[eb[l]]
-                    coupling_rows[slot + 2 * j + l] = va
-                    coupling_cols[slot + 2 * j + l] = wl
-                    coupling[slot + 2 * j + l] = masked_block((ca[j] * cb[l]) * mm, free[va], free[wl])
+    slot = b * couplings_per_problem + coupling_offset + 4 * j
+    k = int(0)  # noqa: UP018
+    for a in range(4):
+        wp.atomic_add(gradient, row + points[a], c[a] * gu)
+        for l in range(4):
+            block = pair_block(sc, j, fr.other[i], a, l)
+            if block >= 0:
+                wp.atomic_add(hessian, ob + block, (c[a] * c[l]) * mm)
+            elif a < l:
+                coupling_rows[slot + k] = points[a]
+                coupling_cols[slot + k] = points[l]
+                coupling[slot + k] = masked_block((c[a] * c[l]) * mm, free[points[a]], free[points[l]])
+                k += 1
 
 
 @wp.kernel
@@ -1489,56 +1395,19 @@ def friction_force_kernel(
     fr: FrictionPairs,
     force: wp.array(dtype=wp.vec3d),
 ):
-    """Friction force of the vertex-triangle friction pairs of surface vertex s on every vertex (b N + v)."""
-    b, s = wp.tid()
-    K = sc.candidates
-    first = (b * sc.surface.shape[0] + s) * K
+    """Friction force of friction slot j on its points (rows b N + v)."""
+    b, j = wp.tid()
+    i = b * fr.slots + j
+    if fr.other[i] < 0:
+        return
     o = b * sc.num_vertices
-    for k in range(K):
-        i = first + k
-        if fr.face[i] >= 0:
-            u = vertex_pair_slip(sc, positions, o, fr, o, s, i)
-            gu = friction_gradient(u, fr.normal[i], fr.mu * fr.force[i], fr.slip)
-            wp.atomic_add(force, o + sc.surface[s], -gu)
-            ids = sc.faces[fr.face[i]]
-            for j in range(3):
-                wp.atomic_add(force, o + ids[j], fr.weights[i][j] * gu)
-
-
-@wp.kernel
-def edge_friction_force_kernel(
-    positions: wp.array(dtype=wp.vec3d),
-    sc: SelfContactArrays,
-    fr: FrictionPairs,
-    force: wp.array(dtype=wp.vec3d),
-):
-    """Friction force of the edge-edge friction pairs of surface edge e on every vertex (b N + v)."""
-    b, e = wp.tid()
-    K = sc.edge_candidates
-    first = (b * sc.edges.shape[0] + e) * K
-    o = b * sc.num_vertices
-    ea = sc.edges[e]
-    for k in range(K):
-        i = first + k
-        g = fr.edge[i]
-        if g >= 0:
-            u = edge_pair_slip(sc, positions, o, fr, o, e, i)
-            gu = friction_gradient(u, fr.edge_normal[i], fr.mu * fr.edge_force[i], fr.slip)
-            eb = sc.edges[g]
-            st = fr.params[i]
-            wp.atomic_add(force, o + sc.surface[ea[0]], -(f64(1.0) - st[0]) * gu)
-            wp.atomic_add(force, o + sc.surface[ea[1]], -st[0] * gu)
-            wp.atomic_add(force, o + sc.surface[eb[0]], (f64(1.0) - st[1]) * gu)
-            wp.atomic_add(force, o + sc.surface[eb[1]], st[1] * gu)
-
-
-@wp.func
-def lag_error(mu: f64, lam: f64, n: wp.vec3d, same: bool, lag: f64, lag_n: wp.vec3d) -> f64:
-    """Friction capacity error of one pair slot: mu (|lambda - lambda_lag| + lambda |n - n_lag|) where the
-    slot holds the lagged pair (or none, then and now), mu (lambda + lambda_lag) where another one."""
-    if same:
-        return mu * (wp.abs(lam - lag) + lam * wp.length(n - lag_n))
-    return mu * (lam + lag)
+    points = pair_points(sc, j, fr.other[i])
+    c = fr.coefficients[i]
+    gu = friction_gradient(
+        friction_slip(positions, o, fr, o, points, c), fr.normal[i], fr.mu * fr.force[i], fr.slip
+    )
+    for a in range(4):
+        wp.atomic_add(force, o + points[a], -c[a] * gu)
 
 
 @wp.kernel
@@ -1553,81 +1422,28 @@ def friction_lag_error_kernel(
     total: wp.array(dtype=wp.float64),
     capacity: wp.array(dtype=wp.float64),
 ):
-    """Per problem: the largest and summed friction capacity error of the vertex-triangle pair slots of
-    surface vertex s (the current pairs, from the last :meth:`SelfContact.update_pairs`, against the
-    lagged), and the summed capacity mu lambda of the current pairs."""
-    b, s = wp.tid()
+    """Per problem: the largest and the summed friction capacity error of its slots, mu (|lambda -
+    lambda_lag| + lambda |n - n_lag|) where slot j holds the lagged pair now (or none, then and now), mu
+    (lambda + lambda_lag) where it holds another one (the current pairs from the last pairing), and the
+    summed capacity mu lambda now."""
+    b, j = wp.tid()
     if active[b] == 0:
         return
-    K = sc.candidates
-    first = (b * sc.surface.shape[0] + s) * K
-    kn = pair_stiffness(sc, kappa, youngs[b], s)
-    for k in range(K):
-        i = first + k
-        f = sc.pair[i]
-        lam = f64(0.0)
-        n = wp.vec3d()
-        if f >= 0:
-            d, r, w = vertex_triangle_distance(sc, positions, b * sc.num_vertices, s, f)
-            if d > f64(0.0) and d < sc.gap:
-                lam = barrier_force(d, kn, sc.gap)
-                n = r / d
-        same = fr.face[i] < 0 or fr.face[i] == f
-        lag = f64(0.0)
-        lag_n = n  # a pair that was not lagged: its whole capacity is the error
-        if fr.face[i] >= 0:
-            lag = fr.force[i]
-            lag_n = fr.normal[i]
-        err = lag_error(fr.mu, lam, n, same, lag, lag_n)
-        if err > f64(0.0):
-            wp.atomic_max(largest, b, err)
-            wp.atomic_add(total, b, err)
-        if lam > f64(0.0):
-            wp.atomic_add(capacity, b, fr.mu * lam)
-
-
-@wp.kernel
-def edge_friction_lag_error_kernel(
-    positions: wp.array(dtype=wp.vec3d),
-    sc: SelfContactArrays,
-    youngs: wp.array(dtype=wp.float64),
-    kappa: f64,
-    fr: FrictionPairs,
-    active: wp.array(dtype=wp.int32),
-    largest: wp.array(dtype=wp.float64),
-    total: wp.array(dtype=wp.float64),
-    capacity: wp.array(dtype=wp.float64),
-):
-    """As :func:`friction_lag_error_kernel` for the edge-edge pair slots of surface edge e."""
-    b, e = wp.tid()
-    if active[b] == 0:
-        return
-    K = sc.edge_candidates
-    first = (b * sc.edges.shape[0] + e) * K
-    o = b * sc.num_vertices
-    for k in range(K):
-        i = first + k
-        g = sc.edge_pair[i]
-        lam = f64(0.0)
-        n = wp.vec3d()
-        if g >= 0:
-            d, r, st = edge_edge_distance(sc, positions, o, e, g)
-            if d > f64(0.0) and d < sc.gap:
-                m, dm_da, dm_db = edge_mollifier(sc, positions, o, e, g)
-                lam = m * barrier_force(d, edge_pair_stiffness(sc, kappa, youngs[b], e, g), sc.gap)
-                n = r / d
-        same = fr.edge[i] < 0 or fr.edge[i] == g
-        lag = f64(0.0)
-        lag_n = n
-        if fr.edge[i] >= 0:
-            lag = fr.edge_force[i]
-            lag_n = fr.edge_normal[i]
-        err = lag_error(fr.mu, lam, n, same, lag, lag_n)
-        if err > f64(0.0):
-            wp.atomic_max(largest, b, err)
-            wp.atomic_add(total, b, err)
-        if lam > f64(0.0):
-            wp.atomic_add(capacity, b, fr.mu * lam)
+    i = b * fr.slots + j
+    other, lam, n, c = barrier_pair(sc, positions, youngs[b], kappa, b, j)
+    lag = f64(0.0)
+    lag_n = n  # a pair lagged nowhere: its whole capacity is the error
+    if fr.other[i] >= 0:
+        lag = fr.force[i]
+        lag_n = fr.normal[i]
+    err = fr.mu * (lam + lag)
+    if fr.other[i] < 0 or fr.other[i] == other:
+        err = fr.mu * (wp.abs(lam - lag) + lam * wp.length(n - lag_n))
+    if err > f64(0.0):
+        wp.atomic_max(largest, b, err)
+        wp.atomic_add(total, b, err)
+    if lam > f64(0.0):
+        wp.atomic_add(capacity, b, fr.mu * lam)
 
 
 @wp.kernel
@@ -1884,22 +1700,18 @@ class SelfContact:
         self._meshes = [wp.Mesh(points=self._points[b * N : (b + 1) * N], indices=indices) for b in range(B)]
         self._mesh_ids = wp.array([m.id for m in self._meshes], dtype=wp.uint64, device=dev)
         self._force = wp.zeros(B * N, dtype=wp.vec3d, device=dev)
+        #: friction slots per problem (model "barrier" with friction): one per barrier pair slot, S K + E KE
+        self.friction_slots = P = S * K + E * KE if friction > 0 else 0
         #: coupling blocks per problem: 3 per vertex pair slot (one slot per vertex; "barrier": K per vertex
-        #: and 4 per edge pair slot, KE per edge; with friction as many again for the friction pairs)
-        self.couplings_per_problem = C = (
-            (3 * S * K + 4 * E * KE) * (2 if friction > 0 else 1) if barrier else 3 * S
-        )
+        #: and 4 per edge pair slot, KE per edge; then 4 per friction slot)
+        self.couplings_per_problem = C = 3 * S * K + 4 * E * KE + 4 * P if barrier else 3 * S
         fr = FrictionPairs()
-        friction_slots, edge_friction_slots = (B * S * K, B * E * KE) if friction > 0 else (1, 1)
-        fr.reference = wp.zeros(B * N if friction > 0 else 1, dtype=wp.vec3d, device=dev)
-        fr.face = wp.full(friction_slots, -1, dtype=wp.int32, device=dev)
-        fr.weights = wp.zeros(friction_slots, dtype=wp.vec3d, device=dev)
-        fr.normal = wp.zeros(friction_slots, dtype=wp.vec3d, device=dev)
-        fr.force = wp.zeros(friction_slots, dtype=wp.float64, device=dev)
-        fr.edge = wp.full(edge_friction_slots, -1, dtype=wp.int32, device=dev)
-        fr.params = wp.zeros(edge_friction_slots, dtype=wp.vec2d, device=dev)
-        fr.edge_normal = wp.zeros(edge_friction_slots, dtype=wp.vec3d, device=dev)
-        fr.edge_force = wp.zeros(edge_friction_slots, dtype=wp.float64, device=dev)
+        fr.reference = wp.zeros(max(B * N * (P > 0), 1), dtype=wp.vec3d, device=dev)
+        fr.other = wp.full(max(B * P, 1), -1, dtype=wp.int32, device=dev)
+        fr.coefficients = wp.zeros(max(B * P, 1), dtype=wp.vec4d, device=dev)
+        fr.normal = wp.zeros(max(B * P, 1), dtype=wp.vec3d, device=dev)
+        fr.force = wp.zeros(max(B * P, 1), dtype=wp.float64, device=dev)
+        fr.slots = P
         fr.mu = self.friction
         #: the stick zone eps of the friction pairs [m] (``SELF_CONTACT_FRICTION_SLIP`` h)
         self.slip = fr.slip = SELF_CONTACT_FRICTION_SLIP * float(size)
@@ -1987,15 +1799,8 @@ class SelfContact:
             )
             if self.friction > 0:
                 inputs = [positions, self.arrays, self._friction, active, energy]
-                wp.launch(
-                    friction_energy_kernel, dim=(states, self.num_surface), inputs=inputs, device=self.device
-                )
-                wp.launch(
-                    edge_friction_energy_kernel,
-                    dim=(states, self.num_edges),
-                    inputs=inputs,
-                    device=self.device,
-                )
+                dim = (states, self.friction_slots)
+                wp.launch(friction_energy_kernel, dim=dim, inputs=inputs, device=self.device)
             return
         wp.launch(
             self_contact_energy_kernel,
@@ -2031,13 +1836,15 @@ class SelfContact:
                 device=dev,
             )
             if self.friction > 0:
-                C = self.couplings_per_problem
-                inputs = [positions, self.arrays, self._friction, rows, blocks, C, C // 2, active, free]
-                for kernel, dim in (
-                    (friction_gradient_hessian_kernel, self.num_surface),
-                    (edge_friction_gradient_hessian_kernel, self.num_edges),
-                ):
-                    wp.launch(kernel, dim=(self.batch_size, dim), inputs=inputs, outputs=outputs, device=dev)
+                C, P = self.couplings_per_problem, self.friction_slots
+                inputs = [positions, self.arrays, self._friction, rows, blocks, C, C - 4 * P, active, free]
+                wp.launch(
+                    friction_gradient_hessian_kernel,
+                    dim=(self.batch_size, P),
+                    inputs=inputs,
+                    outputs=outputs,
+                    device=dev,
+                )
             return
         wp.launch(
             self_contact_gradient_hessian_kernel,
@@ -2067,8 +1874,7 @@ class SelfContact:
             return
         B, dev, sc, fr = self.batch_size, self.device, self.arrays, self._friction
         inputs = [positions, sc, youngs, float(kappa), active, fr]
-        wp.launch(lag_friction_kernel, dim=(B, self.num_surface), inputs=inputs, device=dev)
-        wp.launch(lag_edge_friction_kernel, dim=(B, self.num_edges), inputs=inputs, device=dev)
+        wp.launch(lag_friction_kernel, dim=(B, self.friction_slots), inputs=inputs, device=dev)
         if reference:
             inputs = [positions, sc, active, fr]
             wp.launch(lag_reference_kernel, dim=(B, sc.num_vertices), inputs=inputs, device=dev)
@@ -2090,8 +1896,7 @@ class SelfContact:
             stats[1],
             stats[2],
         ]
-        wp.launch(friction_lag_error_kernel, dim=(B, self.num_surface), inputs=inputs, device=dev)
-        wp.launch(edge_friction_lag_error_kernel, dim=(B, self.num_edges), inputs=inputs, device=dev)
+        wp.launch(friction_lag_error_kernel, dim=(B, self.friction_slots), inputs=inputs, device=dev)
 
     def step_bound(self, positions, direction, rows_per_problem: int, active) -> np.ndarray:
         """Model "barrier": (B,) the step length along ``direction`` (B R rows, the object's vertices first)
@@ -2140,20 +1945,8 @@ class SelfContact:
             )
             if self.friction > 0:
                 inputs = [positions, self.arrays, self._friction]
-                wp.launch(
-                    friction_force_kernel,
-                    dim=(B, self.num_surface),
-                    inputs=inputs,
-                    outputs=[self._force],
-                    device=dev,
-                )
-                wp.launch(
-                    edge_friction_force_kernel,
-                    dim=(B, self.num_edges),
-                    inputs=inputs,
-                    outputs=[self._force],
-                    device=dev,
-                )
+                dim = (B, self.friction_slots)
+                wp.launch(friction_force_kernel, dim=dim, inputs=inputs, outputs=[self._force], device=dev)
             return
         wp.launch(
             self_contact_force_kernel,
