@@ -777,6 +777,27 @@ def test_barrier_pairs_are_the_near_vertex_triangle_and_edge_edge_pairs():
         assert edist[e, k] == pytest.approx(ref, rel=1e-9)
 
 
+def _dense_hessian(pattern, blocks, couplings, touched):
+    """The Hessian on the ``touched`` vertices' components, dense: the pattern's ``blocks`` and the
+    ``couplings`` (rows, cols, blocks; each added with its transpose), and the vertices' row index."""
+    index = {u: k for k, u in enumerate(touched)}
+    full = np.zeros((3 * len(touched), 3 * len(touched)))
+
+    def add(r, c, block):
+        full[3 * index[r] : 3 * index[r] + 3, 3 * index[c] : 3 * index[c] + 3] += block
+
+    for a_ in touched:
+        for b_ in touched:
+            k = pattern.block_index(np.array([a_]), np.array([b_]))[0]
+            if k >= 0:
+                add(a_, b_, blocks[k])
+    for r, c, block in zip(*couplings):
+        if np.abs(block).max() > 0:
+            add(r, c, block)
+            add(c, r, block.T)
+    return full, index
+
+
 @pytest.mark.parametrize("aligned", [False, True])
 def test_barrier_gradient_and_hessian_match_finite_differences(aligned):
     """The barrier's exact gradient (vertex-triangle and edge-edge pairs; with the blocks aligned, edge above
@@ -808,17 +829,8 @@ def test_barrier_gradient_and_hessian_match_finite_differences(aligned):
     rows, cols, coupling = (a.numpy() for a in sc.coupling)
     live = np.abs(coupling).reshape(len(coupling), -1).max(axis=1) > 0
     assert live.sum() > 10
-    index = {u: k for k, u in enumerate(touched)}
-    m = 3 * len(touched)
-    full = np.zeros((m, m))
-    for a_ in touched:
-        for b_ in touched:
-            k = pattern.block_index(np.array([a_]), np.array([b_]))[0]
-            if k >= 0:
-                full[3 * index[a_] : 3 * index[a_] + 3, 3 * index[b_] : 3 * index[b_] + 3] += H[k]
-    for r, c, blk in zip(rows[live], cols[live], coupling[live]):
-        full[3 * index[r] : 3 * index[r] + 3, 3 * index[c] : 3 * index[c] + 3] += blk
-        full[3 * index[c] : 3 * index[c] + 3, 3 * index[r] : 3 * index[r] + 3] += blk.T
+    full, index = _dense_hessian(pattern, H, (rows, cols, coupling), touched)
+    m = len(full)
     np.testing.assert_allclose(full, full.T, atol=1e-12 * np.abs(full).max())
     assert np.linalg.eigvalsh(full).min() > -1e-9 * np.abs(full).max()
     # vertical stiffness of the contact: d(upper block's force_z)/d(upper block's z)
@@ -1224,21 +1236,12 @@ def test_barrier_friction_gradient_and_hessian_match_finite_differences(slide):
         assert 0.05 * capacity < np.linalg.norm(tangential) < 0.9 * capacity
     touched = np.flatnonzero(np.linalg.norm(friction, axis=1) > 0)
     _assert_fd_gradient(sc, x, g, touched[::4], youngs, 1000.0, 1e-2, eps=1e-10)
-    # the friction Hessian (pattern blocks and couplings): symmetric PSD, the derivative of its gradient
-    index = {u: k for k, u in enumerate(touched)}
-    m = 3 * len(touched)
-    full = np.zeros((m, m))
-    for a_ in touched:
-        for b_ in touched:
-            k = pattern.block_index(np.array([a_]), np.array([b_]))[0]
-            if k >= 0:
-                full[3 * index[a_] : 3 * index[a_] + 3, 3 * index[b_] : 3 * index[b_] + 3] += H[k] - H0[k]
-    rows, cols, coupling = (a.numpy() for a in sc.coupling)
-    C = sc.couplings_per_problem
-    for r, c, blk in zip(rows[C // 2 :], cols[C // 2 :], coupling[C // 2 :]):
-        if np.abs(blk).max() > 0:
-            full[3 * index[r] : 3 * index[r] + 3, 3 * index[c] : 3 * index[c] + 3] += blk
-            full[3 * index[c] : 3 * index[c] + 3, 3 * index[r] : 3 * index[r] + 3] += blk.T
+    # the friction Hessian (pattern blocks and its couplings, after the barrier's): symmetric PSD, the
+    # derivative of its gradient
+    first = sc.couplings_per_problem - 4 * sc.friction_slots
+    friction_couplings = [a.numpy()[first:] for a in sc.coupling]
+    assert np.abs(friction_couplings[2]).max() > 0
+    full, index = _dense_hessian(pattern, H - H0, friction_couplings, touched)
     np.testing.assert_allclose(full, full.T, atol=1e-12 * np.abs(full).max())
     assert np.linalg.eigvalsh(full).min() > -1e-9 * np.abs(full).max()
     v = np.random.default_rng(3).normal(size=(len(touched), 3))
