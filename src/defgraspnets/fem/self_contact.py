@@ -1167,41 +1167,65 @@ def edge_barrier_force_kernel(
 # 1 - s, s, -(1 - t), -t), in two groups (v | f's corners, e's ends | g's ends): the Hessian blocks within a
 # group lie in the FEM block pattern (tet edges), those across the groups are couplings.
 @wp.func
+def listed_pair(sc: SelfContactArrays, b: int, j: int) -> int:
+    """The feature (triangle or edge; -1: none) in pair slot j of problem b's lists (the last pairing)."""
+    SK = sc.surface.shape[0] * sc.candidates
+    if j < SK:
+        return sc.pair[b * SK + j]
+    return sc.edge_pair[b * sc.edges.shape[0] * sc.edge_candidates + j - SK]
+
+
+@wp.func
 def barrier_pair(
-    sc: SelfContactArrays, positions: wp.array(dtype=wp.vec3d), young: f64, kappa: f64, b: int, j: int
+    sc: SelfContactArrays,
+    positions: wp.array(dtype=wp.vec3d),
+    young: f64,
+    kappa: f64,
+    b: int,
+    j: int,
+    other: int,
 ):
-    """The barrier pair of slot j of problem b at ``positions`` (from the last pairing's lists): its other
-    feature (triangle or edge; -1 where the slot is empty or its pair farther than d^), normal force
-    lambda (mollified for edges), unit normal and coefficients c."""
+    """The barrier pair of slot j's vertex (edge) with feature ``other`` (triangle or edge) at
+    ``positions``: its normal force lambda (mollified for edges; 0 where the pair is farther than d^), unit
+    normal and coefficients c."""
     SK = sc.surface.shape[0] * sc.candidates
     o = b * sc.num_vertices
-    other = int(-1)  # noqa: UP018
     lam = f64(0.0)
     n = wp.vec3d()
     c = wp.vec4d()
     if j < SK:
         s = j // sc.candidates
-        f = sc.pair[b * SK + j]
-        if f >= 0:
-            d, r, w = vertex_triangle_distance(sc, positions, o, s, f)
-            if d > f64(0.0) and d < sc.gap:
-                other = f
-                lam = barrier_force(d, pair_stiffness(sc, kappa, young, s), sc.gap)
-                n = r / d
-                c = wp.vec4d(f64(1.0), -w[0], -w[1], -w[2])
+        d, r, w = vertex_triangle_distance(sc, positions, o, s, other)
+        if d > f64(0.0) and d < sc.gap:
+            lam = barrier_force(d, pair_stiffness(sc, kappa, young, s), sc.gap)
+            n = r / d
+            c = wp.vec4d(f64(1.0), -w[0], -w[1], -w[2])
     else:
-        je = j - SK
-        e = je // sc.edge_candidates
-        g = sc.edge_pair[b * sc.edges.shape[0] * sc.edge_candidates + je]
-        if g >= 0:
-            d, r, st = edge_edge_distance(sc, positions, o, e, g)
-            if d > f64(0.0) and d < sc.gap:
-                m, dm_da, dm_db = edge_mollifier(sc, positions, o, e, g)
-                other = g
-                lam = m * barrier_force(d, edge_pair_stiffness(sc, kappa, young, e, g), sc.gap)
-                n = r / d
-                c = wp.vec4d(f64(1.0) - st[0], st[0], -(f64(1.0) - st[1]), -st[1])
-    return other, lam, n, c
+        e = (j - SK) // sc.edge_candidates
+        d, r, st = edge_edge_distance(sc, positions, o, e, other)
+        if d > f64(0.0) and d < sc.gap:
+            m, dm_da, dm_db = edge_mollifier(sc, positions, o, e, other)
+            lam = m * barrier_force(d, edge_pair_stiffness(sc, kappa, young, e, other), sc.gap)
+            n = r / d
+            c = wp.vec4d(f64(1.0) - st[0], st[0], -(f64(1.0) - st[1]), -st[1])
+    return lam, n, c
+
+
+@wp.func
+def lagged_with(sc: SelfContactArrays, fr: FrictionPairs, b: int, j: int, other: int) -> bool:
+    """Whether slot j's vertex (edge) has a friction pair with feature ``other`` (in any of its slots: a
+    rebuilt list may hold its pairs in another order)."""
+    SK = sc.surface.shape[0] * sc.candidates
+    first = (j // sc.candidates) * sc.candidates
+    K = sc.candidates
+    if j >= SK:
+        K = sc.edge_candidates
+        first = SK + ((j - SK) // K) * K
+    found = bool(False)  # noqa: UP018
+    for k in range(K):
+        if fr.other[b * fr.slots + first + k] == other:
+            found = True
+    return found
 
 
 @wp.func
@@ -1293,17 +1317,21 @@ def lag_friction_kernel(
     active: wp.array(dtype=wp.int32),
     fr: FrictionPairs,
 ):
-    """Lag the friction of the active problems at ``positions``: slot j's barrier pair, if closer than d^,
-    with its normal force, normal and coefficients; else none."""
+    """Lag the friction of the active problems at ``positions``: slot j's listed barrier pair, if closer
+    than d^, with its normal force, normal and coefficients; else none."""
     b, j = wp.tid()
     if active[b] == 0:
         return
     i = b * fr.slots + j
-    other, lam, n, c = barrier_pair(sc, positions, youngs[b], kappa, b, j)
-    fr.other[i] = other
-    fr.force[i] = lam
-    fr.normal[i] = n
-    fr.coefficients[i] = c
+    fr.other[i] = -1
+    other = listed_pair(sc, b, j)
+    if other >= 0:
+        lam, n, c = barrier_pair(sc, positions, youngs[b], kappa, b, j, other)
+        if lam > f64(0.0):
+            fr.other[i] = other
+            fr.force[i] = lam
+            fr.normal[i] = n
+            fr.coefficients[i] = c
 
 
 @wp.kernel
@@ -1422,28 +1450,29 @@ def friction_lag_error_kernel(
     total: wp.array(dtype=wp.float64),
     capacity: wp.array(dtype=wp.float64),
 ):
-    """Per problem: the largest and the summed friction capacity error of its slots, mu (|lambda -
-    lambda_lag| + lambda |n - n_lag|) where slot j holds the lagged pair now (or none, then and now), mu
-    (lambda + lambda_lag) where it holds another one (the current pairs from the last pairing), and the
-    summed capacity mu lambda now."""
+    """Per problem: the largest and the summed friction capacity error, mu (|lambda - lambda_lag| + lambda
+    |n - n_lag|) of the friction pair in slot j (its normal force and normal now against the lagged ones),
+    and mu lambda of the listed pair in slot j where that acts now (closer than d^) but has no friction pair
+    (lagged nowhere); and the summed capacity mu lambda of the acting listed pairs. Pairs are matched by
+    their features, not their slots (a rebuilt list may hold them in another order)."""
     b, j = wp.tid()
     if active[b] == 0:
         return
     i = b * fr.slots + j
-    other, lam, n, c = barrier_pair(sc, positions, youngs[b], kappa, b, j)
-    lag = f64(0.0)
-    lag_n = n  # a pair lagged nowhere: its whole capacity is the error
+    err = f64(0.0)
     if fr.other[i] >= 0:
-        lag = fr.force[i]
-        lag_n = fr.normal[i]
-    err = fr.mu * (lam + lag)
-    if fr.other[i] < 0 or fr.other[i] == other:
-        err = fr.mu * (wp.abs(lam - lag) + lam * wp.length(n - lag_n))
+        lam, n, c = barrier_pair(sc, positions, youngs[b], kappa, b, j, fr.other[i])
+        err = fr.mu * (wp.abs(lam - fr.force[i]) + lam * wp.length(n - fr.normal[i]))
+    listed = listed_pair(sc, b, j)
+    if listed >= 0:
+        lam, n, c = barrier_pair(sc, positions, youngs[b], kappa, b, j, listed)
+        if lam > f64(0.0):
+            wp.atomic_add(capacity, b, fr.mu * lam)
+            if not lagged_with(sc, fr, b, j, listed):
+                err += fr.mu * lam
     if err > f64(0.0):
         wp.atomic_max(largest, b, err)
         wp.atomic_add(total, b, err)
-    if lam > f64(0.0):
-        wp.atomic_add(capacity, b, fr.mu * lam)
 
 
 @wp.kernel
