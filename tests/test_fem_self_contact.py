@@ -1328,3 +1328,37 @@ def test_barrier_friction_sticks_then_slides_at_coulombs_limit():
     assert 0.05 < share[0] < share[1] < share[2] < 0.8
     for s in share[3:]:
         assert s == pytest.approx(1.0, abs=0.1)
+
+
+def test_barrier_friction_lag_check_matches_pairs_by_their_features():
+    """The lag check of a state against its own lag is zero however the lists order their pairs (a list
+    rebuilt in another order: every vertex's and edge's slots reversed), and it sees a moved pair: the upper
+    block lowered by 10 um changes every normal force (summed error ~ mu times their change)."""
+    mesh, n, x0, x, sc, _, pattern, _ = _friction_state(0.0)
+    youngs = wp.array([E], dtype=wp.float64, device="cpu")
+    active = wp.array([1], dtype=wp.int32, device="cpu")
+    at = wp.array(x, dtype=wp.vec3d, device="cpu")
+
+    def check(positions):
+        stats = wp.zeros((3, 1), dtype=wp.float64, device="cpu")
+        sc.friction_lag_error(positions, youngs, 1000.0, active, stats)
+        return stats.numpy()[:, 0]
+
+    sc.update_pairs(at)
+    sc.lag_friction(at, youngs, 1000.0, active)
+    largest, total, capacity = check(at)
+    assert capacity == pytest.approx(MU * sc._friction.force.numpy()[sc._friction.other.numpy() >= 0].sum())
+    assert total == 0.0
+    a = sc.arrays
+    for pair, k in ((a.pair, a.candidates), (a.edge_pair, a.edge_candidates)):
+        pair.assign(pair.numpy().reshape(-1, k)[:, ::-1].ravel().copy())
+    listed = np.concatenate([a.pair.numpy(), a.edge_pair.numpy()])
+    lagged = sc._friction.other.numpy()
+    assert np.any((lagged >= 0) & (listed != lagged))  # slot by slot, pairs would read as changed
+    assert check(at)[1] == 0.0
+    lowered = x.copy()
+    lowered[n:, 2] -= 1e-5
+    moved = wp.array(lowered, dtype=wp.vec3d, device="cpu")
+    sc.update_pairs(moved)
+    largest, total, now = check(moved)
+    assert now > capacity and total >= 0.9 * (now - capacity) and largest > 0
