@@ -128,11 +128,12 @@ with c the pair's coefficients (as the barrier's: (1, -w) or (1 - s, s, -(1 - t)
 ``SELF_CONTACT_FRICTION_SLIP`` h the stick zone: the friction force mu lambda F'(y) along the slip rises from
 0 to Coulomb's mu lambda over eps, and is mu lambda beyond (sliding). Gradient exact; Hessian exact and PSD (c
 c^T (x) mu lambda (F''(y) t t^T / y^2 + F'(y) / y (P - t t^T / y^2)) with P = I - n n^T, t = P u), its
-couplings after the barrier's (as many slots again). The normal forces are re-lagged from the iterate (the
+couplings after the barrier's (4 per friction slot). The normal forces are re-lagged from the iterate (the
 slips' reference kept) where the rigid contact's are (``_relag_friction``: the first
 ``friction_relag_iterations`` Newton iterations of an increment), and a converged state is accepted only once
-its lagged forces are its own: every slot's capacity error mu (|lambda - lambda_lag| + lambda |n - n_lag|)
-below the residual tolerance (``friction_lag_error_kernel``, with the rigid contact's check); else it is
+its lagged forces are its own: every pair's capacity error mu (|lambda - lambda_lag| + lambda |n - n_lag|)
+below the residual tolerance, or their sum below ``friction_rtol`` of the capacity
+(``friction_lag_error_kernel``, with the rigid contact's check); else it is
 re-lagged and Newton goes on (up to ``max_friction_relags``). Measured (tests): a cube pressed onto a slab
 of one mesh and pushed sideways sticks (the lateral force grows with the push) and then slides at mu F_z
 within 1.00-1.07 (the slab's dent under the leading edge tilts normals); the re-lags to consistency cost

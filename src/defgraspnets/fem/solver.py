@@ -384,14 +384,15 @@ class SolverOptions:
             friction lags and stick anchors are per (problem, point, body); results stay per surface vertex
             (point forces lumped with the barycentric weights). Cost: ~n^2 times the contact points (see
             ``contact.py``).
-        self_contact: s, frictionless self-contact of the object's surface (``self_contact.py``): every
-            surface vertex is pushed out of the nearest facing triangle of the object's own surface that it
-            is not near at rest, with the rigid contact's penalty law at s times its stiffness (s = 1: the
-            same pressure stiffness kappa E / h and penetration tolerance). 0 (default): off, bit for bit as
-            before. Pairs are found per Newton iteration with one Warp BVH per problem. Its Hessian couples
-            vertices outside the FEM block pattern: needs linear_solver "direct", "dense", "banded" or
-            "dense_banded" ("auto" picks "direct" where it would pick an iterative solver), which solve with
-            those couplings; CG and AMG would not converge (``SELF_CONTACT_SOLVERS``).
+        self_contact: s, self-contact of the object's surface (``self_contact.py``; frictionless unless
+            ``self_contact_friction``): every surface vertex is pushed out of the nearest facing triangle
+            of the object's own surface that it is not near at rest, with the rigid contact's penalty law at
+            s times its stiffness (s = 1: the same pressure stiffness kappa E / h and penetration tolerance).
+            0 (default): off, bit for bit as before. Pairs are found per Newton iteration with one Warp BVH
+            per problem. Its Hessian couples vertices outside the FEM block pattern: needs linear_solver
+            "direct", "dense", "banded" or "dense_banded" ("auto" picks "direct" where it would pick an
+            iterative solver), which solve with those couplings; CG and AMG would not converge
+            (``SELF_CONTACT_SOLVERS``).
         self_contact_model: how a vertex's penetration of the surface is measured (``self_contact.py``):
             "prism" (default): the depth below the least deep candidate triangle whose prism holds the
             vertex; "feature": the distance to the nearest candidate triangle, closed (edges and corners),
