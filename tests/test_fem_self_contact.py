@@ -1258,7 +1258,7 @@ def test_barrier_friction_gradient_and_hessian_match_finite_differences(slide):
     np.testing.assert_allclose(full @ v.ravel(), fd, rtol=0, atol=1e-4 * np.abs(fd).max())
 
 
-def _slid_block(mu: float, slides, press: float = 2e-3):
+def _slid_block(mu: float, slides, press: float = 2e-3, device: str = "cpu", linear_solver: str = "direct"):
     """A 10 mm cube of one mesh with a 30 x 30 x 10 mm slab, 0.5 mm above the slab's middle; the slab's
     bottom and the cube's top fixed (prescribed); barrier self-contact with friction ``mu``. The top pressed
     down by ``press``, then moved sideways (x) by each of ``slides`` [m] in turn with the press held (the
@@ -1275,15 +1275,14 @@ def _slid_block(mu: float, slides, press: float = 2e-3):
     top = z > 0.0205 - 1e-9
     fixed[(z < 1e-9) | top] = True
     options = fem.SolverOptions(
-        linear_solver="direct",
+        linear_solver=linear_solver,
         self_contact=1.0,
         contact_smoothing=1e-2,
         self_contact_model="barrier",
         self_contact_friction=mu,
     )
-    solver = fem.QuasiStaticSolver(
-        mesh, [], fem.Material(E, 0.3, 1000.0, model="neohookean"), fixed=fixed, options=options
-    )
+    material = fem.Material(E, 0.3, 1000.0, model="neohookean")
+    solver = fem.QuasiStaticSolver(mesh, [], material, fixed=fixed, device=device, options=options)
     u = np.zeros((mesh.num_vertices, 3))
     u[top, 2] = -press
     assert (
@@ -1300,9 +1299,9 @@ def _slid_block(mu: float, slides, press: float = 2e-3):
         support = eq.reaction_force[0, z < 1e-9].sum(axis=0)
         np.testing.assert_allclose(support, pushed, rtol=1e-4, atol=1e-6 * pushed[2])
         if mu > 0:  # accepted with its own normal forces: the lagged ones are the converged state's
-            sc, stats = solver._self_contact, wp.zeros((3, 1), dtype=wp.float64, device="cpu")
+            sc, stats = solver._self_contact, wp.zeros((3, 1), dtype=wp.float64, device=device)
             sc.update_pairs(solver._positions)
-            active = wp.array([1], dtype=wp.int32, device="cpu")
+            active = wp.array([1], dtype=wp.int32, device=device)
             sc.friction_lag_error(solver._positions, solver._youngs, 1000.0, active, stats)
             largest, total, capacity = stats.numpy()[:, 0]
             assert capacity > 0.2 * mu * pushed[2]
@@ -1328,6 +1327,18 @@ def test_barrier_friction_sticks_then_slides_at_coulombs_limit():
     assert 0.05 < share[0] < share[1] < share[2] < 0.8
     for s in share[3:]:
         assert s == pytest.approx(1.0, abs=0.1)
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("linear_solver", ["dense", "banded"])
+def test_cuda_barrier_friction_matches_cpu(linear_solver):
+    """The friction's kernels (lag, energy, gradient-Hessian and couplings, forces, lag check) on CUDA give
+    the CPU's contact forces on the cube pushed across the slab, sticking and sliding."""
+    slides = [1e-3, 5e-3]
+    cpu = _slid_block(MU, slides)
+    cuda = _slid_block(MU, slides, device="cuda", linear_solver=linear_solver)
+    for a, b in zip(cpu, cuda):
+        np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-6 * abs(a[2]))
 
 
 def test_barrier_friction_lag_check_matches_pairs_by_their_features():
