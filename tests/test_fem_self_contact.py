@@ -1329,15 +1329,31 @@ def test_barrier_friction_sticks_then_slides_at_coulombs_limit():
         assert s == pytest.approx(1.0, abs=0.1)
 
 
+#: the cube's contact forces [N] pushed 1 and 5 mm across the slab with friction on the CPU ("direct")
+FRICTION_REFERENCE = Path(__file__).parent / "data" / "self_contact_friction_cpu_reference.npz"
+FRICTION_SLIDES = [1e-3, 5e-3]
+
+
+def write_friction_cpu_reference():
+    """Regenerate tests/data/self_contact_friction_cpu_reference.npz (a GPU machine may have no CPU kernel
+    compiler: its tests compare with stored CPU results)."""
+    np.savez(FRICTION_REFERENCE, force=np.array(_slid_block(MU, FRICTION_SLIDES)))
+
+
+def test_friction_cpu_matches_stored_reference():
+    """The CPU's forces are the stored ones that the CUDA test compares with (regenerate them with
+    :func:`write_friction_cpu_reference` after a change of the path)."""
+    force = np.load(FRICTION_REFERENCE)["force"]
+    np.testing.assert_allclose(np.array(_slid_block(MU, FRICTION_SLIDES)), force, rtol=1e-6)
+
+
 @pytest.mark.gpu
 @pytest.mark.parametrize("linear_solver", ["dense", "banded"])
 def test_cuda_barrier_friction_matches_cpu(linear_solver):
     """The friction's kernels (lag, energy, gradient-Hessian and couplings, forces, lag check) on CUDA give
     the CPU's contact forces on the cube pushed across the slab, sticking and sliding."""
-    slides = [1e-3, 5e-3]
-    cpu = _slid_block(MU, slides)
-    cuda = _slid_block(MU, slides, device="cuda", linear_solver=linear_solver)
-    for a, b in zip(cpu, cuda):
+    cuda = _slid_block(MU, FRICTION_SLIDES, device="cuda", linear_solver=linear_solver)
+    for a, b in zip(np.load(FRICTION_REFERENCE)["force"], cuda):
         np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-6 * abs(a[2]))
 
 
